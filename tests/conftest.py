@@ -1,0 +1,34 @@
+"""Shared helpers: MuJoCo's own ray casting as the independent reference."""
+
+import mujoco
+import numpy as np
+import pytest
+
+from methd_jax import floors
+
+RAY_HEIGHT = 0.5  # to_mjcf's default obstacles are 1 m tall; scan at mid-height
+
+
+def mujoco_scan(floor, pose, num_rays: int = 720) -> np.ndarray:
+    """Ranges from MuJoCo's C ray caster (float64) on the floor's MJCF export; inf on a miss."""
+    m = mujoco.MjModel.from_xml_string(floors.to_mjcf(floor, height=2 * RAY_HEIGHT))
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    return mujoco_scan_model(m, d, pose, num_rays)
+
+
+def mujoco_scan_model(m, d, pose, num_rays: int = 720) -> np.ndarray:
+    pose = np.asarray(pose, np.float64)
+    ang = pose[2] + 2 * np.pi * np.arange(num_rays) / num_rays
+    vec = np.stack([np.cos(ang), np.sin(ang), np.zeros(num_rays)], 1).ravel()
+    dist = np.zeros(num_rays)
+    gid = np.zeros(num_rays, np.int32)
+    group = np.array([1, 1, 1, 0, 1, 1], np.uint8)  # group 3 is the ground plane
+    pnt = np.array([pose[0], pose[1], RAY_HEIGHT])
+    mujoco.mj_multiRay(m, d, pnt, vec, group, 1, -1, gid, dist, None, num_rays, 1e9)
+    return np.where(dist < 0, np.inf, dist)
+
+
+@pytest.fixture(scope="session")
+def mujoco_reference():
+    return mujoco_scan
