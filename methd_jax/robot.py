@@ -1,0 +1,104 @@
+"""The CoboDeck base as an MJX model: a 130 kg holonomic body driven by saturating velocity servos.
+
+The model (``assets/kairos_base.xml``) has three joints (slide x, slide y, hinge yaw, in the world
+frame) and three velocity servos along the robot's own forward, left and yaw axes, so a command is
+a robot-frame velocity that a turning base keeps. :meth:`Robot.step` takes such a command at the
+control rate (50 Hz), saturates it to the speed limits, and integrates the physics substeps. The
+servos' force and torque limits make the base accelerate at a finite rate (3 m/s^2 per axis,
+6 rad/s^2) instead of jumping to the commanded velocity.
+
+Everything is pure and vmappable: ``jax.vmap(robot.step)(data, commands)`` steps a fleet.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+from mujoco import mjx
+
+from methd_jax.floors import ASSETS
+from methd_jax.geometry import rotate, wrap_angle
+
+ROBOT_ASSET = ASSETS / "kairos_base.xml"
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotConfig:
+    """Limits and rates of the base (the servo gains and force limits live in the MJCF)."""
+
+    max_speed: float = 3.0
+    """Top linear speed, m/s: the norm of (vx, vy) is clipped to it (a user walks at <= 1.9 m/s)."""
+    max_yaw_rate: float = 2.0
+    """Top yaw rate, rad/s."""
+    control_dt: float = 0.02
+    """Control period, s (50 Hz, thesis §4.3.2); a whole number of MJCF timesteps."""
+    mjcf: str = str(ROBOT_ASSET)
+    """Path of the base's MJCF."""
+
+    def __post_init__(self):
+        for name in ("max_speed", "max_yaw_rate", "control_dt"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"RobotConfig.{name} must be positive, got {getattr(self, name)}")
+
+
+class Robot:
+    """The base's MJX model plus the functions that command it. Construct once, outside ``jit``."""
+
+    def __init__(self, cfg: RobotConfig = RobotConfig()):
+        self.cfg = cfg
+        path = Path(cfg.mjcf)
+        if not path.is_file():
+            raise FileNotFoundError(f"robot MJCF not found: {path}")
+        self.mj_model = mujoco.MjModel.from_xml_path(str(path))
+        names = [self.mj_model.joint(i).name for i in range(self.mj_model.njnt)]
+        actuators = [self.mj_model.actuator(i).name for i in range(self.mj_model.nu)]
+        if names != ["x", "y", "yaw"] or actuators != ["vx", "vy", "vyaw"]:
+            raise ValueError(
+                f"{path}: expected joints x, y, yaw and actuators vx, vy, vyaw, got {names}, {actuators}"
+            )
+        ratio = cfg.control_dt / self.mj_model.opt.timestep
+        self.substeps = round(ratio)
+        if self.substeps < 1 or abs(ratio - self.substeps) > 1e-6:
+            raise ValueError(
+                f"control_dt {cfg.control_dt} is not a whole number of MJCF timesteps "
+                f"({self.mj_model.opt.timestep})"
+            )
+        self.model = mjx.put_model(self.mj_model)
+
+    def init(self, pose: jax.Array) -> mjx.Data:
+        """A base at rest at ``pose`` = (x, y, yaw)."""
+        data = mjx.make_data(self.model)
+        return data.replace(qpos=jnp.asarray(pose, data.qpos.dtype))
+
+    def saturate(self, command: jax.Array) -> jax.Array:
+        """Clips a robot-frame command (vx, vy, wz) to the limits; non-finite commands stop the base."""
+        command = jnp.where(jnp.all(jnp.isfinite(command)), command, 0.0)
+        v = command[:2]
+        speed = jnp.linalg.norm(v)
+        v = v * jnp.minimum(1.0, self.cfg.max_speed / jnp.maximum(speed, 1e-12))
+        w = jnp.clip(command[2], -self.cfg.max_yaw_rate, self.cfg.max_yaw_rate)
+        return jnp.concatenate([v, w[None]])
+
+    def step(self, data: mjx.Data, command: jax.Array) -> mjx.Data:
+        """Advances one control period under the robot-frame velocity ``command`` (m/s, m/s, rad/s)."""
+        data = data.replace(ctrl=self.saturate(command).astype(data.ctrl.dtype))
+        return jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx.step(self.model, d), data)
+
+
+def pose(data: mjx.Data) -> jax.Array:
+    """(x, y, yaw) of the base, yaw wrapped to [-pi, pi)."""
+    return jnp.concatenate([data.qpos[:2], wrap_angle(data.qpos[2:3])])
+
+
+def velocity(data: mjx.Data) -> jax.Array:
+    """(vx, vy, wz) of the base in the robot frame."""
+    return jnp.concatenate([rotate(-data.qpos[2], data.qvel[:2]), data.qvel[2:3]])
+
+
+def acceleration(data: mjx.Data) -> jax.Array:
+    """(ax, ay, dwz) of the base's last substep in the robot frame."""
+    return jnp.concatenate([rotate(-data.qpos[2], data.qacc[:2]), data.qacc[2:3]])
