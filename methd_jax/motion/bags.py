@@ -243,15 +243,20 @@ def _files(path: Path, suffix: str) -> list[Path]:
     return [path]
 
 
-def load(path: str | Path, progress=None) -> list[Trajectory]:
-    """Reads a ``.mcap`` file or a directory of them (in name order); all or nothing."""
-    files = _files(Path(path), ".mcap")
+def _read_all(path: str | Path, suffix: str, read, progress) -> list[Trajectory]:
+    """Every ``suffix`` file at ``path`` (a file or a directory, in name order); all or nothing."""
+    files = _files(Path(path), suffix)
     out = []
     for i, f in enumerate(files):
-        out.append(read_bag(f))
+        out.append(read(f))
         if progress is not None:
             progress(i + 1, len(files))
     return out
+
+
+def load(path: str | Path, progress=None) -> list[Trajectory]:
+    """Reads a ``.mcap`` file or a directory of them (in name order); all or nothing."""
+    return _read_all(path, ".mcap", read_bag, progress)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -336,10 +341,4 @@ def convert(src: str | Path, dst: str | Path, progress=None) -> list[Path]:
 
     Every input is read and checked before anything is written.
     """
-    files = _files(Path(src), ".bag")
-    trajectories = []
-    for i, f in enumerate(files):
-        trajectories.append(read_ros1_bag(f))
-        if progress is not None:
-            progress(i + 1, len(files))
-    return save(dst, trajectories)
+    return save(dst, _read_all(src, ".bag", read_ros1_bag, progress))
