@@ -83,10 +83,24 @@ class Robot:
         w = jnp.clip(command[2], -self.cfg.max_yaw_rate, self.cfg.max_yaw_rate)
         return jnp.concatenate([v, w[None]])
 
-    def step(self, data: mjx.Data, command: jax.Array) -> mjx.Data:
-        """Advances one control period under the robot-frame velocity ``command`` (m/s, m/s, rad/s)."""
+    def scaled_model(self, mass_scale: jax.Array, force_scale: jax.Array) -> mjx.Model:
+        """The model with mass and inertia times ``mass_scale`` and the servos' force and torque limits
+        times ``force_scale`` (domain randomisation; the scales may be traced and vmapped)."""
+        m = self.model
+        return m.replace(
+            body_mass=m.body_mass * mass_scale,
+            body_inertia=m.body_inertia * mass_scale,
+            actuator_forcerange=m.actuator_forcerange * force_scale,
+        )
+
+    def step(self, data: mjx.Data, command: jax.Array, model: mjx.Model | None = None) -> mjx.Data:
+        """Advances one control period under the robot-frame velocity ``command`` (m/s, m/s, rad/s).
+
+        ``model`` replaces the nominal model (see :meth:`scaled_model`).
+        """
+        model = self.model if model is None else model
         data = data.replace(ctrl=self.saturate(command).astype(data.ctrl.dtype))
-        return jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx.step(self.model, d), data)
+        return jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx.step(model, d), data)
 
 
 def pose(data: mjx.Data) -> jax.Array:

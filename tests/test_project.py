@@ -50,6 +50,8 @@ def test_bench_cli_smoke(tmp_path):
             "8",
             "--robots",
             "8",
+            "--env-sizes",
+            "4",
             "--repeats",
             "1",
             "--json",
@@ -67,6 +69,10 @@ def test_bench_cli_smoke(tmp_path):
     assert row["floors"] == 8 and row["ours_scans_per_s"] > 0 and row["mjx_ray_scans_per_s"] > 0
     assert row["rays_agreeing_1mm"] >= 0.999
     assert res["robot"]["robots"] == 8 and res["robot"]["robot_steps_per_s"] > 0
+    assert [(r["env"], r["envs"]) for r in res["envs"]] == [("su", 4), ("nav", 4)]
+    assert all(r["env_steps_per_s"] > 0 for r in res["envs"])
+    assert [(r["env"], r["envs"]) for r in res["envs"]] == [("su", 4), ("nav", 4)]
+    assert all(r["env_steps_per_s"] > 0 for r in res["envs"])
 
 
 @pytest.mark.parametrize("args", [["--sizes", "0"], ["--repeats", "-1"], ["--bogus"]])

@@ -7,6 +7,8 @@ Sections (each timed in this one process, on whatever JAX device is default):
   two casters' ranges are compared on every scene as well, so the ratio is between equal answers.
 * ``floors``: procedural floors generated per second.
 * ``robot``: MJX base steps (one 50 Hz control tick each) per second for a fleet.
+* ``envs``: ``su`` and ``nav`` environment steps per second (LiDAR, noise, MJX base, users, rewards),
+  with the shipped sample trajectories (the replayed data does not change the cost).
 
 Timings: each function is compiled and run once (compile time reported separately), then run
 ``--repeats`` times, alternating ours and the peer; the median is reported.
@@ -192,6 +194,24 @@ def bench_robot(n: int, repeats: int, log) -> dict:
     return row
 
 
+def bench_envs(sizes: list[int], repeats: int, log) -> list[dict]:
+    import envs
+
+    rows = []
+    for name in ("su", "nav"):
+        env = envs.make(name, motion="sample")
+        reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
+        for n in sizes:
+            state = reset(jax.random.split(jax.random.key(n), n))
+            action = jnp.zeros((n, env.action_size))
+            c, times = _timed(step, (state, action), repeats)
+            row = {"env": name, "envs": n, "env_steps_per_s": n / statistics.median(times), "compile_s": c}
+            rate = row["env_steps_per_s"]
+            log(f"  env    {name:>4} {n:>6} envs: {rate:>10,.0f} env-steps/s (LiDAR included)")
+            rows.append(row)
+    return rows
+
+
 def machine() -> dict:
     dev = jax.devices()[0]
     return {
@@ -215,14 +235,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="small batches and few repeats (CI smoke)")
     p.add_argument("--sizes", type=int, nargs="+", help="floor batch sizes for the LiDAR section")
     p.add_argument("--robots", type=int, help="fleet size for the robot section (default 4096)")
+    p.add_argument("--env-sizes", type=int, nargs="+", help="batch sizes for the environment section")
     p.add_argument("--repeats", type=int, help="timed runs per measurement")
     p.add_argument("--json", help="also write the results as JSON to this path")
     args = p.parse_args(argv)
     sizes = args.sizes or ([64, 256] if args.quick else [64, 1024, 4096])
     robots = args.robots or (512 if args.quick else 4096)
+    env_sizes = args.env_sizes or ([64, 256] if args.quick else [256, 2048, 8192])
     repeats = args.repeats or (3 if args.quick else 7)
-    if min(sizes) < 1 or robots < 1 or repeats < 1:
-        p.error("--sizes, --robots and --repeats must be positive")
+    if min(sizes) < 1 or robots < 1 or repeats < 1 or min(env_sizes) < 1:
+        p.error("--sizes, --env-sizes, --robots and --repeats must be positive")
 
     def log(msg):
         print(msg, flush=True)
@@ -237,6 +259,7 @@ def main(argv: list[str] | None = None) -> int:
         "lidar": bench_lidar(sizes, repeats, log),
         "floors": bench_floors(max(sizes), repeats, log),
         "robot": bench_robot(robots, repeats, log),
+        "envs": bench_envs(env_sizes, repeats, log),
     }
     results["peak_host_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     log(f"  peak host memory {results['peak_host_memory_mb']:.0f} MB")

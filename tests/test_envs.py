@@ -1,0 +1,337 @@
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from envs.nav import observation_layout
+from methd_jax import floors, motion
+from methd_jax import robot as robot_lib
+from methd_jax.floors import FloorConfig
+
+EMPTY = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 0), num_polygons=(0, 0))
+OPEN_ROOM = FloorConfig(room_size=(20.0, 20.0), num_circles=(0, 0), num_polygons=(0, 0))
+"""An empty floor big enough that every HIP of the lab paths lies inside it."""
+
+
+@pytest.fixture(scope="module")
+def bank():
+    return motion.MotionBank.from_trajectories(motion.sample())
+
+
+def _rollout(env, n, steps, policy, key=0):
+    """``steps`` auto-reset steps of ``n`` copies in one jitted scan: final state and per-step data."""
+    wrapped = envs.AutoReset(env)
+
+    @jax.jit
+    def run(rng):
+        k_reset, k_act = jax.random.split(rng)
+        state = wrapped.reset(jax.random.split(k_reset, n))
+
+        def body(carry, k):
+            state = carry
+            action = policy(state.obs, k)
+            state = wrapped.step(state, action)
+            return state, (
+                state.reward,
+                state.done,
+                state.metrics,
+                state.info["episode_done"],
+                state.info["completed_return"],
+                jnp.all(jnp.isfinite(state.obs)),
+            )
+
+        return jax.lax.scan(body, state, jax.random.split(k_act, steps))
+
+    return run(jax.random.key(key))
+
+
+def _random(env):
+    return lambda obs, k: jax.random.uniform(k, (obs.shape[0], env.action_size), minval=-1, maxval=1)
+
+
+@pytest.mark.parametrize("name", ["su", "nav", "guide"])
+def test_2048_copies_step_500_times_finite(name, bank):
+    env = envs.make(name, bank=bank)
+    final, (reward, _, metrics, ep_done, _, finite) = _rollout(env, 2048, 500, _random(env))
+    assert bool(finite.all()) and np.isfinite(np.asarray(reward)).all()
+    assert final.obs.shape == (2048, env.observation_size)
+    if name != "guide":  # random driving hits things, and episodes restart
+        assert float(metrics["collision_obstacle"].sum()) > 0 and float(ep_done.sum()) > 0
+
+
+def test_observation_layout_sizes():
+    assert observation_layout(1)["goal"].stop == 720 + 25
+    assert observation_layout(2)["goal"].stop == 720 + 33
+    assert observation_layout(3)["goal"].stop == 720 + 41  # N is a config value, not hard-coded
+
+
+_OBSERVERS = {}
+
+
+def _state_with_robot_at(env, key, pose):
+    """The observation of a reset world with the robot moved to ``pose`` (one compiled function per env)."""
+    if id(env) not in _OBSERVERS:
+
+        @jax.jit
+        def observe(key, pose):
+            w = env.reset(key).pipeline_state
+            w = w.replace(robot=env.robot.init(pose))
+            return (w, *env._observe(w, jnp.zeros(3), key))
+
+        _OBSERVERS[id(env)] = observe
+    return _OBSERVERS[id(env)](key, jnp.asarray(pose, jnp.float32))
+
+
+def test_observation_values_angles_and_tolerance_zone(bank):
+    env = envs.make("su", bank=bank, floor=EMPTY, lidar_noise=0.0, lidar_dropout=0.0)
+    lay = env.observation_layout
+    w = env.reset(jax.random.key(3)).pipeline_state
+    goal = np.asarray(w.goal)
+    # robot 1 m behind the goal (in the goal's frame), facing along +x of the world
+    pose = [goal[0] - 1.0, goal[1], 0.0]
+    _, obs, _, _ = _state_with_robot_at(env, jax.random.key(3), pose)
+    g = np.asarray(obs[lay["goal"]])
+    assert g[0] == pytest.approx(1.0, abs=1e-5) and g[1] == pytest.approx(0.0, abs=1e-5)
+    assert g[2] == pytest.approx(1.0, abs=1e-5) and g[3] == pytest.approx(0.0, abs=1e-5)
+    assert g[4] == pytest.approx(math.remainder(goal[2], 2 * math.pi), abs=1e-5)
+    # within 0.2 m theta_g reads 0 even though the goal lies to the side
+    _, obs, _, _ = _state_with_robot_at(env, jax.random.key(3), [goal[0], goal[1] - 0.15, 0.0])
+    g = np.asarray(obs[lay["goal"]])
+    assert g[2] == pytest.approx(0.15, abs=1e-5) and g[3] == 0.0 and g[1] == pytest.approx(0.15, abs=1e-5)
+    # just outside it theta_g is the bearing (+90 deg: the goal is to the robot's left)
+    _, obs, _, _ = _state_with_robot_at(env, jax.random.key(3), [goal[0], goal[1] - 0.25, 0.0])
+    assert float(obs[lay["goal"]][3]) == pytest.approx(math.pi / 2, abs=1e-4)
+    # dead zones: 3 mm off and 0.002 rad off read exactly 0
+    _, obs, _, _ = _state_with_robot_at(env, jax.random.key(3), [goal[0] - 0.003, goal[1], goal[2] - 0.002])
+    g = np.asarray(obs[lay["goal"]])
+    assert g[0] == 0.0 and g[4] == 0.0
+    # all angles wrapped, ranges clamped to 3 m
+    for yaw in np.linspace(-7, 7, 9):
+        _, obs, _, _ = _state_with_robot_at(env, jax.random.key(3), [goal[0] - 2.0, goal[1] + 1.0, yaw])
+        u = np.asarray(obs[lay["user0"]])
+        assert (
+            -math.pi <= u[5] < math.pi
+            and -math.pi <= u[6] < math.pi
+            and -math.pi <= obs[lay["goal"]][4] < math.pi
+        )
+        assert float(obs[lay["lidar"]].max()) <= 3.0
+    # user state: distance and bearing consistent with the relative position
+    assert u[7] == pytest.approx(np.hypot(u[0], u[1]), rel=1e-5)
+    assert u[6] == pytest.approx(math.atan2(u[1], u[0]), abs=1e-5)
+
+
+def test_spawn_is_clear_of_obstacles_and_users(bank):
+    env = envs.make("nav", bank=bank)
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(5), 2048))
+    w = states.pipeline_state
+    pose = jax.vmap(robot_lib.pose)(w.robot)
+    sd = jax.vmap(floors.signed_distance)(w.floor, pose[:, :2])
+    assert float(sd.min()) >= 0.77 + 0.05 - 1e-4
+    user_xy = bank.pose[w.users, 0, :2]  # (2048, 2, 2)
+    d = np.linalg.norm(np.asarray(user_xy) - np.asarray(pose[:, None, :2]), axis=-1)
+    assert d.min() >= 1.77
+    assert float(states.metrics["closest_obstacle"].sum()) == 0.0  # reset metrics are zeros
+    assert float(jnp.min(jax.vmap(lambda s: s)(states.obs)[:, :720])) > 0.7
+
+
+def _goal_seeker(env, gain=1.0, top_speed=1.0, keep_away=2.3):
+    """Drives straight at the goal (velocity gain * (goal - robot), capped at ``top_speed`` m/s),
+    backing away from a user closer than ``keep_away`` (the HIP itself lies 2.02 m from the user)."""
+    lay = env.observation_layout
+
+    def policy(obs, _):
+        g = obs[:, lay["goal"]]
+        u = obs[:, lay["user0"]]
+        away = -u[:, :2] / jnp.maximum(u[:, 7:8], 1e-6) * 3.0 * jnp.maximum(keep_away - u[:, 7:8], 0.0)
+        v = gain * g[:, :2] + away
+        v = v * jnp.minimum(1.0, top_speed / jnp.maximum(jnp.linalg.norm(v, axis=1, keepdims=True), 1e-6))
+        ang = jnp.clip(g[:, 4:5], -1, 1)
+        return jnp.concatenate([v / 3.0, ang / 2.0 * 2.0], 1)
+
+    return policy
+
+
+def test_driving_at_the_hip_beats_standing_still(bank):
+    env = envs.make("su", bank=bank, floor=OPEN_ROOM)
+    zero = lambda obs, k: jnp.zeros((obs.shape[0], 3))  # noqa: E731
+    _, (r_seek, *_) = _rollout(env, 32, 600, _goal_seeker(env, gain=1.0, top_speed=1.5))
+    _, (r_zero, *_) = _rollout(env, 32, 600, zero)
+    seek, still = float(r_seek.sum(0).mean()), float(r_zero.sum(0).mean())
+    assert seek > still + 500, (seek, still)
+
+
+def test_driving_into_a_wall_terminates_with_the_obstacle_penalty(bank):
+    env = envs.make("su", bank=bank, floor=EMPTY)
+    state = jax.jit(env.reset)(jax.random.key(7))
+    w = state.pipeline_state
+    b = np.asarray(w.floor.bounds)
+    user = np.asarray(bank.pose[w.users[0], 0, :2])
+    start_y = b[1] + 1.5 if user[1] > 0 else b[3] - 1.5  # the half of the room away from the user
+    w = w.replace(
+        robot=env.robot.init(jnp.array([b[2] - 4.0, start_y, 0.0]))
+    )  # 4 m from the east wall, facing it
+    state = state.replace(pipeline_state=w)
+    step = jax.jit(env.step)
+    for _ in range(200):
+        state = step(state, jnp.array([1.0, 0.0, 0.0]))
+        if float(state.done):
+            break
+    assert float(state.done) == 1.0 and float(state.info["truncation"]) == 0.0
+    assert float(state.metrics["collision_obstacle"]) == 1.0
+    assert float(state.metrics["reward/obstacle_collision"]) == -900.0 and float(state.reward) < -800
+
+
+def test_episode_succeeds_after_the_cooldown_and_auto_resets(bank):
+    env = envs.make("su", bank=bank, floor=OPEN_ROOM, cooldown=1.0)
+    wrapped = envs.AutoReset(env)
+    state = jax.jit(wrapped.reset)(jax.random.split(jax.random.key(11), 4))
+    w = state.pipeline_state
+    # jump to just before the end of the cooldown: 45 of its 50 steps have passed
+    state = state.replace(pipeline_state=w.replace(t=w.request_step + 45))
+    step = jax.jit(wrapped.step)
+    total = np.zeros(4)
+    floor_before = np.asarray(w.floor.circles)
+    for _ in range(5):
+        state = step(state, jnp.zeros((4, 3)))
+        total += np.asarray(state.reward)
+    done = np.asarray(state.done) == 1.0
+    safe = (np.asarray(state.metrics["collision_user"]) == 0) & (
+        np.asarray(state.metrics["collision_obstacle"]) == 0
+    )
+    assert done.all() and np.all(np.asarray(state.metrics["success"])[safe] == 1.0) and safe.any()
+    assert np.all(np.asarray(state.pipeline_state.t) == 0)  # fresh episodes ...
+    assert not np.allclose(np.asarray(state.pipeline_state.floor.circles), floor_before)  # ... on new floors
+    assert np.all(np.asarray(state.info["episode_done"]) == 1.0) and np.all(
+        np.asarray(state.info["episode_length"]) == 0
+    )
+    np.testing.assert_allclose(np.asarray(state.info["completed_return"]), total, rtol=1e-5)
+
+
+def test_truncation_at_the_time_limit(bank):
+    env = envs.make("su", bank=bank, floor=EMPTY, time_limit=0.1)
+    state = jax.jit(env.reset)(jax.random.key(2))
+    step = jax.jit(env.step)
+    for _ in range(5):
+        state = step(state, jnp.zeros(3))
+    assert float(state.done) == 1.0 and float(state.info["truncation"]) == 1.0
+
+
+def test_users_visible_option(bank):
+    seen = envs.make("su", bank=bank, floor=EMPTY, users_visible=True, lidar_noise=0.0, lidar_dropout=0.0)
+    blind = envs.make("su", bank=bank, floor=EMPTY, lidar_noise=0.0, lidar_dropout=0.0)
+    key = jax.random.key(4)
+    w = seen.reset(key).pipeline_state
+    user = np.asarray(bank.pose[w.users[0], 0])
+    pose = [user[0] - 2.0, user[1], 0.0]  # 2 m behind the user, facing them
+    _, obs_seen, *_ = _state_with_robot_at(seen, key, pose)
+    _, obs_blind, *_ = _state_with_robot_at(blind, key, pose)
+    assert float(obs_seen[0]) == pytest.approx(2.0 - 0.25, abs=1e-4)  # ray 0 hits the user's legs
+    assert float(obs_blind[0]) > 2.0
+
+
+def test_randomized_dynamics_option(bank):
+    env = envs.make("su", bank=bank, randomize_dynamics=True)
+    reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
+    w = reset(jax.random.split(jax.random.key(0), 64)).pipeline_state
+    dyn = np.asarray(w.dynamics)
+    assert dyn[:, 0].min() >= 0.8 and dyn[:, 0].max() <= 1.3 and dyn[:, 0].std() > 0.05
+    assert dyn[:, 1].min() >= 0.6 and dyn[:, 1].max() <= 1.0
+    # a heavier, weaker base accelerates less under the same command
+    state = reset(jax.random.split(jax.random.key(0), 64))
+    dyn = jnp.tile(jnp.array([[1.0, 1.0], [1.3, 0.6]]), (32, 1))
+    nxt = step(state.replace(pipeline_state=state.pipeline_state.replace(dynamics=dyn)), jnp.ones((64, 3)))
+    v = np.asarray(jax.vmap(robot_lib.velocity)(nxt.pipeline_state.robot))
+    assert v[1, 0] == pytest.approx(v[0, 0] * 0.6 / 1.3, rel=0.05)
+    assert np.all(
+        np.asarray(envs.make("su", bank=bank).reset(jax.random.key(0)).pipeline_state.dynamics) == 1.0
+    )
+
+
+def test_action_latency_option(bank):
+    env = envs.make("su", bank=bank, floor=EMPTY, action_latency=3)
+    state = jax.jit(env.reset)(jax.random.key(1))
+    step = jax.jit(env.step)
+    speeds = []
+    for _ in range(5):
+        state = step(state, jnp.array([1.0, 0.0, 0.0]))
+        speeds.append(float(robot_lib.velocity(state.pipeline_state.robot)[0]))
+    assert speeds[:3] == [0.0, 0.0, 0.0] and speeds[3] > 0
+
+
+def test_request_jitter_option(bank):
+    env = envs.make("su", bank=bank, request_jitter=3.0)
+    w = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), 256)).pipeline_state
+    own = np.asarray(bank.request_step[w.users[:, 0]])
+    early = own - np.asarray(w.request_step)
+    assert early.min() >= 0 and early.max() <= 150 and early.mean() > 30
+
+
+def test_nav_goal_sources(bank):
+    nav = envs.make("nav", bank=bank)
+    assert nav.observation_size == 753
+    state = jax.jit(nav.reset)(jax.random.key(0))
+    step = jax.jit(nav.step)
+    uw = []
+    for _ in range(100):
+        state = step(state, jnp.zeros(3))
+        uw.append(float(state.pipeline_state.u_w))
+    assert max(np.abs(np.diff(uw))) <= 0.02 + 1e-6 and np.ptp(uw) > 0  # scripted: moves, rate-limited
+    # a GuideRL policy that always pushes toward user 2 drives the goal to user 2's HIP
+    pushed = envs.make("nav", bank=bank, guide_policy=lambda obs: jnp.ones(1))
+    state = jax.jit(pushed.reset)(jax.random.key(0))
+    step = jax.jit(pushed.step)
+    for _ in range(30):
+        state = step(state, jnp.zeros(3))
+    w = state.pipeline_state
+    hip2 = np.asarray(bank.hip[w.users[1], w.t])
+    assert float(w.u_w) == 1.0 and np.allclose(np.asarray(w.goal), hip2, atol=1e-5)
+    with pytest.raises(ValueError, match="exactly 2 users"):
+        envs.make("su", bank=bank, guide_policy=lambda obs: obs)
+    three = envs.make("nav", bank=bank, num_users=3)  # N = 3: goal is one user's HIP, scripted
+    s = jax.jit(lambda k: three.step(three.reset(k), jnp.zeros(3)))(jax.random.key(1))
+    hips = np.asarray(jax.vmap(bank.at, (0, None))(s.pipeline_state.users, s.pipeline_state.t)["hip"])
+    assert any(np.allclose(np.asarray(s.pipeline_state.goal), h, atol=1e-5) for h in hips)
+
+
+def test_guide_rewards_and_accuracy(bank):
+    env = envs.make("guide", bank=bank)
+    assert (env.observation_size, env.action_size) == (15, 1)
+
+    def oracle(state):  # knows the requester
+        return jnp.where(state.pipeline_state.requester == 0, -1.0, 1.0)[None]
+
+    def run(policy, key):
+        state = jax.jit(env.reset)(key)
+        step = jax.jit(env.step)
+        total, acc = 0.0, None
+        for _ in range(4000):
+            state = step(state, policy(state))
+            total += float(state.reward)
+            if float(state.metrics["at_request"]):
+                acc = float(state.metrics["correct_at_request"])
+            if float(state.done):
+                return total, acc, state
+        raise AssertionError("guide episode did not end")
+
+    total_oracle, acc_oracle, end = run(oracle, jax.random.key(3))
+    total_zero, acc_zero, _ = run(lambda s: jnp.zeros(1), jax.random.key(3))
+    assert acc_oracle == 1.0 and acc_zero == 0.0  # u_w = 0 has no sign
+    assert abs(float(end.pipeline_state.u_w)) == 1.0
+    # r_c = 20 per step of the 5 s cooldown beats r_m = 5 per step for staying central
+    assert total_oracle > total_zero
+    r = float(end.metrics["reward/correct"])
+    assert r == pytest.approx(20.0)
+
+
+def test_make_rejects_bad_options(bank):
+    with pytest.raises(ValueError, match="unknown environment 'walk'"):
+        envs.make("walk")
+    with pytest.raises(ValueError, match=r"su: unknown option\(s\) \['speed'\]"):
+        envs.make("su", bank=bank, speed=3)
+    with pytest.raises(ValueError, match="num_users"):
+        envs.make("nav", bank=bank, num_users=0)
+    with pytest.raises(ValueError, match="guide_policy applies to 'nav' only"):
+        envs.make("guide", bank=bank, guide_policy=lambda o: o)
