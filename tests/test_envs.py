@@ -335,3 +335,13 @@ def test_make_rejects_bad_options(bank):
         envs.make("nav", bank=bank, num_users=0)
     with pytest.raises(ValueError, match="guide_policy applies to 'nav' only"):
         envs.make("guide", bank=bank, guide_policy=lambda o: o)
+
+
+def test_lab_floor_option(bank):
+    env = envs.make("su", bank=bank, lab=True)
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), 8))
+    lab = floors.lab()
+    np.testing.assert_allclose(np.asarray(state.pipeline_state.floor.polygons[3]), np.asarray(lab.polygons))
+    np.testing.assert_allclose(np.asarray(state.pipeline_state.floor.bounds[0]), [-5.5, -6.5, 5.5, 6.5])
+    pose = jax.vmap(robot_lib.pose)(state.pipeline_state.robot)
+    assert float(jax.vmap(floors.signed_distance, (None, 0))(lab, pose[:, :2]).min()) >= 0.82 - 1e-4
