@@ -65,7 +65,8 @@ class NavConfig:
     """User trajectories: "default" (the 442-trajectory synthetic set), "sample" (the 4 in
     assets/), or a path to MCAP bags."""
     split: str = "train"
-    """Which trajectories to replay: "train" (342), "test" (the last 100) or "all"."""
+    """Which trajectories to replay: "train" (342), "test" (the last 100) or "all" (sets of at most
+    100 trajectories, like the shipped sample, are used whole)."""
     lab: bool = False
     """Train on the lab twin instead of a fresh procedural floor per episode."""
     floor: FloorConfig = ENV_FLOORS
@@ -246,7 +247,7 @@ class NavEnv(Env):
         happen, candidate 0 is used and the episode ends at once in a collision.
         """
         cfg = self.config
-        keys = jax.random.split(rng, 9)
+        keys = jax.random.split(rng, 11)  # one key per use: the world's own key is keys[8]
         floor = self._lab if self._lab is not None else floors.generate(keys[0], cfg.floor)
         n_traj = self.bank.num_trajectories
         users = jax.random.choice(keys[1], n_traj, (cfg.num_users,), replace=n_traj < cfg.num_users)
@@ -289,8 +290,8 @@ class NavEnv(Env):
             dynamics=dynamics,
             key=keys[8],
         )
-        world = self._update_goal(world, self._user_features(world), jax.random.key(0), scripted_step=False)
-        obs, terms, metrics = self._observe(world, jnp.zeros(3), jax.random.split(world.key)[1])
+        world = self._update_goal(world, self._user_features(world), keys[9], scripted_step=False)
+        obs, terms, metrics = self._observe(world, jnp.zeros(3), keys[10])
         _, weighted = rewards.total(terms, cfg.weights)
         metrics = _step_metrics(metrics, weighted, terms, jnp.bool_(False), jnp.bool_(False))
         zero = jnp.float32(0.0)
@@ -366,7 +367,7 @@ class NavEnv(Env):
                 guide_actions = jnp.stack([act, guide_actions[0]])
             else:
                 k1, k2 = jax.random.split(key)
-                switch = jax.random.uniform(k1) < DT / (0.5 * sum(cfg.goal_switch_time))
+                switch = scripted_step & (jax.random.uniform(k1) < DT / (0.5 * sum(cfg.goal_switch_time)))
                 target = jnp.where(switch, jax.random.uniform(k2, minval=-1.0, maxval=1.0), target)
                 u_next = u_w + jnp.clip(target - u_w, -cfg.goal_rate, cfg.goal_rate)
             u_w = jnp.where(scripted_step, u_next, u_w)

@@ -345,3 +345,17 @@ def test_lab_floor_option(bank):
     np.testing.assert_allclose(np.asarray(state.pipeline_state.floor.bounds[0]), [-5.5, -6.5, 5.5, 6.5])
     pose = jax.vmap(robot_lib.pose)(state.pipeline_state.robot)
     assert float(jax.vmap(floors.signed_distance, (None, 0))(lab, pose[:, :2]).min()) >= 0.82 - 1e-4
+
+
+def test_no_key_is_used_twice_between_reset_and_step(bank):
+    # A standing robot sees the same true ranges at reset and after one zero-action step, so equal
+    # noisy readings would mean the two observations drew their noise from the same key. (Rays past
+    # 3 m read exactly 3 m either way, so only nearer rays say anything.)
+    env = envs.make("su", bank=bank)
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(8), 16))
+    nxt = jax.jit(jax.vmap(env.step))(states, jnp.zeros((16, 3)))
+    lidar0, lidar1 = np.asarray(states.obs[:, :720]), np.asarray(nxt.obs[:, :720])
+    near = (lidar0 < 2.9) & (lidar1 < 2.9)
+    assert near.sum() > 500
+    assert np.mean(lidar0[near] == lidar1[near]) < 0.01
+    assert abs(np.mean(lidar0[near] - lidar1[near])) < 0.01  # same scene, independent noise
