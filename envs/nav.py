@@ -47,7 +47,7 @@ from envs.goals import goal_from_weight
 from methd_jax import floors, lidar, motion
 from methd_jax import robot as robot_lib
 from methd_jax.floors import Floor, FloorConfig
-from methd_jax.geometry import KAIROS, ray_angles, rotate, to_local, wrap_angle
+from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
 from methd_jax.motion.features import CONTROL_HZ, HipConfig, MotionBank
 
 ENV_FLOORS = FloorConfig(room_size=(13.0, 16.0))
@@ -210,7 +210,7 @@ class NavEnv(Env):
         self.guide_policy = guide_policy
         self.robot = robot_lib.Robot(config.robot)
         self._lab = floors.lab() if config.lab else None
-        self._angles = jnp.asarray(ray_angles(config.num_rays), jnp.float32)
+        self._boundary, self._inflation_scale = KAIROS.ray_geometry(config.num_rays)
         self._scale = jnp.array([config.robot.max_speed, config.robot.max_speed, config.robot.max_yaw_rate])
         self._cooldown_steps = round(config.cooldown * CONTROL_HZ)
         self._limit_steps = round(config.time_limit * CONTROL_HZ)
@@ -419,8 +419,8 @@ class NavEnv(Env):
         held = jnp.where(within, w.held + DT, 0.0)  # time the r_g tolerance has been held
         terms = rewards.terms(
             ranges=ranges,
-            angles=self._angles,
-            footprint=KAIROS,
+            boundary=self._boundary,
+            inflation_scale=self._inflation_scale,
             user_distances=d_u,
             d_goal=d_g,
             dyaw=dyaw,

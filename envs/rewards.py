@@ -12,8 +12,6 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from methd_jax.geometry import Footprint
-
 
 @dataclasses.dataclass(frozen=True)
 class SafetyConfig:
@@ -117,8 +115,8 @@ def acceleration_penalty(q: jax.Array) -> jax.Array:
 def terms(
     *,
     ranges: jax.Array,
-    angles: jax.Array,
-    footprint: Footprint,
+    boundary: jax.Array,
+    inflation_scale: jax.Array,
     user_distances: jax.Array,
     d_goal: jax.Array,
     dyaw: jax.Array,
@@ -130,9 +128,12 @@ def terms(
     acceleration: jax.Array,
     safety: SafetyConfig,
 ) -> dict[str, jax.Array]:
-    """All unweighted terms of eq. 4.17 for one step (``ranges`` are the true, unclamped ranges)."""
-    boundary = footprint.boundary_distance(angles)
-    inflation = footprint.inflation_distance(ranges, angles)
+    """All unweighted terms of eq. 4.17 for one step.
+
+    ``ranges`` are the true, unclamped ranges; ``boundary`` (b_r) and ``inflation_scale`` are the
+    per-ray constants of :meth:`methd_jax.geometry.Footprint.ray_geometry`.
+    """
+    inflation = (ranges - boundary) * inflation_scale  # f(l) of eq. 4.13
     bad = unsafe(user_distances, inflation, safety)
     return {
         "distance": distance_reward(d_goal, bad),

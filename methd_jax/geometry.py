@@ -108,6 +108,19 @@ class Footprint:
         excess = ranges - self.boundary_distance(angles)
         return jnp.where(s * self.radius >= 0.5 * self.width, excess * s, excess * c)
 
+    def ray_geometry(self, num_rays: int = 720) -> tuple[np.ndarray, np.ndarray]:
+        """Per-ray constants ``(b_r, scale)`` (numpy, float32) with ``f(l) = (l - b_r) * scale``.
+
+        The same values as :meth:`boundary_distance` and :meth:`inflation_distance` at the scan's
+        ray angles, computed once on the host so a jitted step does no trigonometry per ray.
+        """
+        a = ray_angles(num_rays)
+        s, c = np.abs(np.sin(a)), np.abs(np.cos(a))
+        with np.errstate(divide="ignore"):
+            b = np.minimum(0.5 * self.length / c, 0.5 * self.width / s)
+        scale = np.where(s * self.radius >= 0.5 * self.width, s, c)
+        return b.astype(np.float32), scale.astype(np.float32)
+
 
 KAIROS = Footprint()
 """The CoboDeck base: 1.13 m long, 0.91 m wide, r = 0.77 m."""

@@ -101,3 +101,11 @@ def test_footprint_rejects_bad_sizes():
         Footprint(length=-1.0)
     with pytest.raises(ValueError, match="does not enclose"):
         Footprint(radius=0.5)
+
+
+def test_ray_geometry_constants_match_the_functions():
+    a = jnp.asarray(geometry.ray_angles(), jnp.float32)
+    b, scale = KAIROS.ray_geometry()
+    np.testing.assert_allclose(b, KAIROS.boundary_distance(a), rtol=1e-5)
+    ranges = jnp.linspace(0.3, 3.0, 720)
+    np.testing.assert_allclose((ranges - b) * scale, KAIROS.inflation_distance(ranges, a), atol=1e-5)

@@ -14,6 +14,7 @@ from methd_jax.geometry import KAIROS, ray_angles
 
 SAFE = SafetyConfig()
 ANGLES = jnp.asarray(ray_angles(), jnp.float32)
+BOUNDARY, SCALE = KAIROS.ray_geometry()
 HALF_L, HALF_W = 1.13 / 2, 0.91 / 2
 
 
@@ -32,8 +33,8 @@ def _terms(
     f = jnp.asarray
     return rewards.terms(
         ranges=f(ranges, jnp.float32),
-        angles=ANGLES,
-        footprint=KAIROS,
+        boundary=BOUNDARY,
+        inflation_scale=SCALE,
         user_distances=f(user_distances),
         d_goal=f(d_goal),
         dyaw=f(dyaw),
