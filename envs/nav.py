@@ -183,8 +183,8 @@ class World:
     velocity: jax.Array  # (3,) robot-frame velocity at the last step (for q_r)
     held: jax.Array  # () s the goal tolerance of r_g has been held
     goal: jax.Array  # (3,) goal pose x, y, yaw
-    u_w: jax.Array  # () user weight (nav with 2 users) or target user index (other N)
-    goal_target: jax.Array  # () scripted goal source: where u_w is heading
+    u_w: jax.Array  # () user weight (nav with 2 users)
+    goal_target: jax.Array  # () scripted goal source: target u_w (2 users) or target user index
     guide_actions: jax.Array  # (2,) GuideRL's a_{t-1}, a_{t-2} (when a GuideRL policy drives the goal)
     pending: jax.Array  # (L, 3) commands on their way to the base (action latency)
     dynamics: jax.Array  # (2,) mass and force scale of the base

@@ -97,29 +97,24 @@ class Footprint:
         to_side = jnp.where(s > 0, 0.5 * self.width / jnp.where(s > 0, s, 1.0), jnp.inf)
         return jnp.minimum(to_front, to_side)
 
-    def inflation_distance(self, ranges: jax.Array, angles: jax.Array) -> jax.Array:
-        """f(l) of eq. 4.13: the excess range ``l - b_r`` projected onto the face it leaves from.
+    def inflation_scale(self, angles: jax.Array) -> jax.Array:
+        """The factor of eq. 4.13: ``|sin|`` for rays that leave through a side, else ``|cos|``.
 
-        Rays with ``|sin| * r >= w / 2`` count as leaving through a side (scaled by ``|sin|``), the
-        others through the front or back (scaled by ``|cos|``). This is the thesis's approximation:
-        its branch uses the radius r, not the exact corner angle.
+        Rays with ``|sin| * r >= w / 2`` count as leaving through a side. This is the thesis's
+        approximation: its branch uses the radius r, not the exact corner angle.
         """
         s, c = jnp.abs(jnp.sin(angles)), jnp.abs(jnp.cos(angles))
-        excess = ranges - self.boundary_distance(angles)
-        return jnp.where(s * self.radius >= 0.5 * self.width, excess * s, excess * c)
+        return jnp.where(s * self.radius >= 0.5 * self.width, s, c)
+
+    def inflation_distance(self, ranges: jax.Array, angles: jax.Array) -> jax.Array:
+        """f(l) of eq. 4.13: the excess range ``l - b_r`` projected onto the face it leaves from."""
+        return (ranges - self.boundary_distance(angles)) * self.inflation_scale(angles)
 
     def ray_geometry(self, num_rays: int = 720) -> tuple[np.ndarray, np.ndarray]:
-        """Per-ray constants ``(b_r, scale)`` (numpy, float32) with ``f(l) = (l - b_r) * scale``.
-
-        The same values as :meth:`boundary_distance` and :meth:`inflation_distance` at the scan's
-        ray angles, computed once on the host so a jitted step does no trigonometry per ray.
-        """
-        a = ray_angles(num_rays)
-        s, c = np.abs(np.sin(a)), np.abs(np.cos(a))
-        with np.errstate(divide="ignore"):
-            b = np.minimum(0.5 * self.length / c, 0.5 * self.width / s)
-        scale = np.where(s * self.radius >= 0.5 * self.width, s, c)
-        return b.astype(np.float32), scale.astype(np.float32)
+        """Per-ray constants ``(b_r, scale)`` (numpy, float32) with ``f(l) = (l - b_r) * scale``,
+        evaluated once on the host so a jitted step does no trigonometry per ray."""
+        a = jnp.asarray(ray_angles(num_rays), jnp.float32)
+        return np.asarray(self.boundary_distance(a)), np.asarray(self.inflation_scale(a))
 
 
 KAIROS = Footprint()
