@@ -1,5 +1,31 @@
 """Flax modules only: the thesis's actor-critic (SU, NavRL) and GuideRL networks."""
 
-from networks.actor_critic import ActorCritic, GuidePolicy, LidarEncoder, count, policy_count
+from networks.actor_critic import (
+    ActorCritic,
+    GuideActorCritic,
+    GuidePolicy,
+    LidarEncoder,
+    count,
+    policy_count,
+)
 
-__all__ = ["ActorCritic", "GuidePolicy", "LidarEncoder", "count", "policy_count"]
+_CLASSES = {"ActorCritic": ActorCritic, "GuideActorCritic": GuideActorCritic}
+
+
+def from_spec(spec: dict):
+    """A module from ``{"class": name, **fields}`` (what exported policies record)."""
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in spec.items() if k != "class"}
+    if spec.get("class") not in _CLASSES:
+        raise ValueError(f"unknown network class {spec.get('class')!r}; known: {sorted(_CLASSES)}")
+    return _CLASSES[spec["class"]](**fields)
+
+
+__all__ = [
+    "ActorCritic",
+    "GuideActorCritic",
+    "GuidePolicy",
+    "LidarEncoder",
+    "count",
+    "from_spec",
+    "policy_count",
+]
