@@ -1,10 +1,23 @@
-"""Shared helpers: MuJoCo's own ray casting as the independent reference."""
+"""Shared helpers: MuJoCo's own ray casting as the independent reference; a compilation cache."""
 
+import atexit
+import shutil
+import tempfile
+
+import jax
 import mujoco
 import numpy as np
 import pytest
 
 from methd_jax import floors
+
+# Many tests train the same tiny configuration from scratch; XLA's persistent cache (fresh for each
+# session) compiles each distinct program once instead of once per test.
+_XLA_CACHE = tempfile.mkdtemp(prefix="methd-jax-test-xla-")
+atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
+jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 RAY_HEIGHT = 0.5  # to_mjcf's default obstacles are 1 m tall; scan at mid-height
 

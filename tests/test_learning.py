@@ -1,0 +1,105 @@
+"""PPO learns on CPU within CI's budget: SU approaches the HIP, GuideRL picks the requesting user.
+
+Both runs are scaled down from the thesis's (Table 4.4 trains on ~400M transitions; these see
+well under 1M) and say so in their configuration.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs.wrappers import AutoReset
+from methd_jax import motion
+from train.presets import apply_overrides, preset
+from train.run import build, train
+
+
+def _evaluate(setup, policy, key, steps, n=64):
+    """Mean reward per step and per-step metrics of ``policy(obs, key)`` on ``n`` fresh episodes."""
+    env = AutoReset(setup.env)
+
+    @jax.jit
+    def roll(key):
+        state = env.reset(jax.random.split(key, n))
+
+        def body(s, k):
+            s = env.step(s, policy(s.obs, k))
+            return s, (s.reward, s.metrics)
+
+        _, (rewards, metrics) = jax.lax.scan(body, state, jax.random.split(jax.random.fold_in(key, 1), steps))
+        return rewards, metrics
+
+    rewards, metrics = roll(key)
+    return float(jnp.mean(rewards)), jax.device_get(metrics)
+
+
+def _policies(setup, state, action_size):
+    return {
+        "trained": lambda obs, k: setup.trainer.policy(state.params, state.obs_stats, obs),
+        "random": lambda obs, k: jax.random.uniform(k, (obs.shape[0], action_size), minval=-1, maxval=1),
+    }
+
+
+def test_su_policy_learns_to_approach_the_hip(tmp_path):
+    # An open floor (walls only), 72 rays, a small body and a tenth of Table 4.1's velocity penalty:
+    # with the full penalty the policy first spends ~1M transitions learning to stand still.
+    config = apply_overrides(
+        preset("quick"),
+        [
+            "env.num_rays=72",
+            "env.motion=sample",
+            "env.weights.velocity=-0.2",
+            "hidden=64,64",
+            "num_envs=128",
+            "ppo.rollouts=32",
+            "ppo.minibatches=4",
+            "timesteps=3200",
+        ],
+    )
+    out = train(config, tmp_path, progress=False)
+    setup = build(config)
+    results = {
+        name: _evaluate(setup, fn, jax.random.key(9), steps=500)
+        for name, fn in _policies(setup, out["state"], 3).items()
+    }
+    (trained, m_trained), (random, m_random) = results["trained"], results["random"]
+    last_second = slice(-50, None)
+    d_trained = np.mean(m_trained["distance_to_goal"][last_second])
+    d_random = np.mean(m_random["distance_to_goal"][last_second])
+    print(
+        f"reward/step trained {trained:.2f} random {random:.2f}; "
+        f"HIP distance {d_trained:.2f} vs {d_random:.2f}"
+    )
+    assert trained > random + 0.3 * abs(random)
+    assert d_trained < 0.75 * d_random
+
+
+def test_guide_policy_learns_and_a_stillness_rule_shows_the_task_is_solvable(tmp_path):
+    """GuideRL in CI's budget learns the midpoint reward (beats random acting); picking the requesting
+    user, which the thesis reached after ~200M transitions, is out of this budget: the accuracy is
+    printed, and a scripted rule (turn toward the user standing still) shows the synthetic data
+    carries the signal (>= 90% at the request)."""
+    motion.save(tmp_path / "bags", motion.synthesize(40, seed=3))
+    config = apply_overrides(
+        preset("guide"),
+        [f"env.motion={tmp_path / 'bags'}", "env.split=all", "num_envs=512", "timesteps=1920"],
+    )
+    out = train(config, tmp_path / "run", progress=False)
+    setup = build(config)
+
+    def still_user(obs, k):
+        speed = jnp.linalg.norm(obs[:, 0:2], axis=1), jnp.linalg.norm(obs[:, 3:5], axis=1)
+        toward = jnp.where(speed[1] < speed[0], 1.0, -1.0)
+        back = jnp.clip(-obs[:, 12] / 0.05, -1.0, 1.0)  # drift u_w back to the midpoint
+        return jnp.where(jnp.minimum(*speed) < 0.05, toward, back)[:, None]
+
+    policies = {**_policies(setup, out["state"], 1), "still_user": still_user}
+    results = {name: _evaluate(setup, fn, jax.random.key(4), steps=2500) for name, fn in policies.items()}
+    accuracy = {
+        name: m["correct_at_request"].sum() / max(m["at_request"].sum(), 1)
+        for name, (_, m) in results.items()
+    }
+    print({name: (round(r, 2), round(float(accuracy[name]), 3)) for name, (r, _) in results.items()})
+    assert results["trained"][0] > results["random"][0] + 1.0
+    assert results["still_user"][1]["at_request"].sum() >= 64
+    assert accuracy["still_user"] >= 0.9

@@ -1,0 +1,196 @@
+"""PPO's pieces against plain loops, and the trainer's guarantees (purity, resume, devices, NaN)."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from train import ppo
+from train.presets import apply_overrides, preset
+from train.run import NonFiniteError, build, train
+
+# A seconds-scale SU run: 72 rays (the fewest the encoder takes), a small body, the 4 sample users.
+TINY = (
+    "env.num_rays=72",
+    "env.motion=sample",
+    "hidden=32,32",
+    "num_envs=8",
+    "ppo.rollouts=4",
+    "ppo.minibatches=2",
+    "ppo.epochs=2",
+    "checkpoint_every=2",
+)
+
+
+def tiny(*extra):
+    return apply_overrides(preset("quick"), [*TINY, *extra])
+
+
+def test_gae_matches_a_python_loop():
+    rng = np.random.default_rng(0)
+    T, N, gamma, lam = 9, 4, 0.97, 0.9
+    rewards, values = rng.normal(size=(T, N)), rng.normal(size=(T, N))
+    dones = (rng.random((T, N)) < 0.25).astype(float)
+    last = rng.normal(size=N)
+    want_adv = np.zeros((T, N))
+    for n in range(N):
+        running = 0.0
+        for t in reversed(range(T)):
+            next_value = last[n] if t == T - 1 else values[t + 1, n]
+            live = 1.0 - dones[t, n]
+            delta = rewards[t, n] + gamma * next_value * live - values[t, n]
+            running = delta + gamma * lam * live * running
+            want_adv[t, n] = running
+    adv, ret = ppo.gae(*(jnp.asarray(x) for x in (rewards, values, dones, last)), gamma, lam)
+    np.testing.assert_allclose(adv, want_adv, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(ret, want_adv + values, rtol=1e-5, atol=1e-5)
+
+
+def test_ppo_loss_matches_a_python_loop():
+    rng = np.random.default_rng(1)
+    B, A, D = 12, 2, 3
+    W = rng.normal(size=(D, A)) * 0.5
+    v = rng.normal(size=D)
+    log_std = np.array([-0.3, 0.2])
+    params = {"W": jnp.asarray(W), "v": jnp.asarray(v), "log_std": jnp.asarray(log_std)}
+
+    def apply_fn(p, obs):
+        return obs @ p["W"], jnp.broadcast_to(p["log_std"], (obs.shape[0], A)), obs @ p["v"]
+
+    batch = {k: rng.normal(size=s) for k, s in [("obs", (B, D)), ("action", (B, A))]}
+    batch.update({k: rng.normal(size=B) for k in ("log_prob", "value", "returns", "advantage")})
+    batch["log_prob"] = batch["log_prob"] - 2.0
+    cfg = ppo.PPOConfig(ratio_clip=0.2, value_clip=0.3, entropy_scale=0.01, value_loss_scale=2.0)
+    loss, parts = ppo.ppo_loss(params, apply_fn, {k: jnp.asarray(x) for k, x in batch.items()}, cfg)
+
+    pol, val, ent, kl = [], [], [], []
+    for i in range(B):
+        mean = batch["obs"][i] @ W
+        logp = sum(
+            -0.5 * ((batch["action"][i, j] - mean[j]) / np.exp(log_std[j])) ** 2
+            - log_std[j]
+            - 0.5 * np.log(2 * np.pi)
+            for j in range(A)
+        )
+        r = np.exp(logp - batch["log_prob"][i])
+        a = batch["advantage"][i]
+        pol.append(-min(r * a, np.clip(r, 0.8, 1.2) * a))
+        pred = batch["obs"][i] @ v
+        pred = batch["value"][i] + np.clip(pred - batch["value"][i], -0.3, 0.3)
+        val.append((batch["returns"][i] - pred) ** 2)
+        ent.append(sum(log_std[j] + 0.5 + 0.5 * np.log(2 * np.pi) for j in range(A)))
+        kl.append((r - 1) - np.log(r))
+    want = np.mean(pol) + 2.0 * np.mean(val) - 0.01 * np.mean(ent)
+    np.testing.assert_allclose(loss, want, rtol=1e-5)
+    np.testing.assert_allclose(parts["loss/policy"], np.mean(pol), rtol=1e-5)
+    np.testing.assert_allclose(parts["policy/kl"], np.mean(kl), rtol=1e-4)
+
+
+def test_running_stats_equal_the_statistics_of_everything_seen():
+    rng = np.random.default_rng(2)
+    batches = [rng.normal(3.0, 2.0, size=(n, 4, 5)) for n in (7, 1, 30)]
+    stats = ppo.RunningStats.zeros((5,))
+    for b in batches:
+        stats = stats.update(jnp.asarray(b))
+    everything = np.concatenate([b.reshape(-1, 5) for b in batches])
+    np.testing.assert_allclose(stats.mean, everything.mean(0), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(stats.var, everything.var(0), rtol=1e-3)
+    np.testing.assert_allclose(stats.denormalize(stats.normalize(everything[:3])), everything[:3], rtol=1e-4)
+
+
+def test_kl_adaptive_learning_rate_follows_skrl():
+    cfg = ppo.PPOConfig(kl_threshold=0.01, kl_factor=2.0, lr_factor=1.5, lr_range=(1e-4, 1e-3))
+    assert float(ppo.adapt_learning_rate(6e-4, 0.03, cfg)) == pytest.approx(4e-4)  # KL > 0.02: slower
+    assert float(ppo.adapt_learning_rate(6e-4, 0.001, cfg)) == pytest.approx(9e-4)  # KL < 0.005: faster
+    assert float(ppo.adapt_learning_rate(6e-4, 0.01, cfg)) == pytest.approx(6e-4)
+    assert float(ppo.adapt_learning_rate(9e-4, 0.0, cfg)) == pytest.approx(1e-3)  # capped
+    assert float(ppo.adapt_learning_rate(1.2e-4, 1.0, cfg)) == pytest.approx(1e-4)  # floored
+
+
+def test_train_is_pure_and_vmaps_over_seeds():
+    trainer = build(tiny()).trainer
+    keys = jax.random.split(jax.random.key(3), 2)
+    batched, metrics = jax.jit(jax.vmap(lambda k: trainer.train(k, 2)))(keys)
+    single = jax.jit(lambda k: trainer.train(k, 2))
+    one, _ = single(keys[1])
+    again, _ = single(keys[1])
+    leaf = lambda s: s.params["params"]["body0"]["kernel"]  # noqa: E731
+    np.testing.assert_array_equal(leaf(one), leaf(again))
+    np.testing.assert_allclose(leaf(batched)[1], leaf(one), rtol=1e-4, atol=1e-5)
+    assert not np.allclose(leaf(batched)[0], leaf(batched)[1])
+    assert metrics["loss/value"].shape == (2, 2)
+
+
+def test_resume_after_a_kill_is_bit_identical(tmp_path):
+    config = tiny("timesteps=24")  # 6 iterations, checkpoints at 2, 4, 6
+    whole = train(config, tmp_path / "whole", preset_name="quick", progress=False)
+    # the process ends after iteration 3: the newest checkpoint is the one at 2
+    train(config, tmp_path / "cut", preset_name="quick", progress=False, stop_after=3)
+    resumed = train(config, tmp_path / "cut", preset_name="quick", progress=False, resume=True)
+    assert int(resumed["state"].iteration) == 6
+    for a, b in zip(
+        jax.tree.leaves(whole["state"].params), jax.tree.leaves(resumed["state"].params), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+    rows = [json.loads(line) for line in (tmp_path / "cut" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3, 4, 5, 6]
+    np.testing.assert_array_equal([r["loss/value"] for r in rows], [r["loss/value"] for r in whole["rows"]])
+
+
+def test_a_diverging_update_stops_the_run(tmp_path):
+    bad = tiny("timesteps=8", "ppo.learning_rate=1e30", "ppo.kl_threshold=0")
+    with pytest.raises(NonFiniteError, match=r"at iteration 1; stopped. Last good checkpoint: none"):
+        train(bad, tmp_path, preset_name="quick", progress=False)
+
+
+def test_a_non_finite_update_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
+    real_update = ppo.Trainer.update
+
+    def poisoned(self, state):  # parameters turn to NaN in the third iteration
+        new, metrics = real_update(self, state)
+        scale = jnp.where(state.iteration >= 2, jnp.nan, 1.0)
+        new = new.replace(params=jax.tree.map(lambda p: p * scale, new.params))
+        return new, {**metrics, "finite": ppo.all_finite(new.params).astype(jnp.float32)}
+
+    monkeypatch.setattr(ppo.Trainer, "update", poisoned)
+    with pytest.raises(NonFiniteError, match=r"at iteration 3; stopped. Last good checkpoint: iteration 2"):
+        train(tiny("timesteps=16"), tmp_path, preset_name="quick", progress=False)
+    from train.checkpoint import Checkpoints
+
+    assert Checkpoints(tmp_path / "checkpoints").latest() == 2
+    assert not (tmp_path / "policy").exists()  # nothing is exported from a broken run
+
+
+def test_sharding_over_two_devices_matches_one(tmp_path):
+    script = textwrap.dedent(
+        f"""
+        import jax, numpy as np
+        from train.presets import apply_overrides, preset
+        from train.run import build
+        assert len(jax.devices()) == 2, jax.devices()
+        config = apply_overrides(preset("quick"), {list(TINY)!r})
+        out = []
+        for devices in (jax.devices()[:1], jax.devices()):
+            trainer = build(config, devices=devices).trainer
+            state, m = jax.jit(lambda k: trainer.train(k, 2))(jax.random.key(0))
+            kernel = state.params["params"]["body0"]["kernel"]
+            out.append(np.asarray(kernel))
+            if len(devices) == 2:
+                assert len(state.env_state.obs.sharding.device_set) == 2, state.env_state.obs.sharding
+        err = np.max(np.abs(out[0] - out[1]))
+        print("max difference", err)
+        assert err < 1e-4, err
+        """
+    )
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-4000:]
+    assert "max difference" in done.stdout

@@ -1,0 +1,106 @@
+"""``python -m train.run``: help, one-line errors on bad input, and a whole small run on disk."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from train import export
+from train.presets import PRESETS
+from train.run import main
+
+TINY = [
+    "env.num_rays=72",
+    "env.motion=sample",
+    "hidden=32,32",
+    "num_envs=8",
+    "ppo.rollouts=4",
+    "ppo.minibatches=2",
+    "ppo.epochs=2",
+    "timesteps=8",
+]
+
+
+def test_help_lists_presets_and_options():
+    done = subprocess.run(
+        [sys.executable, "-m", "train.run", "--help"], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    for name in ("quick", "su", "guide", "nav"):
+        assert f"  {name} " in done.stdout
+    for option in ("num_envs=2048", "ppo.learning_rate=0.0005", "env.lab=False", "guide_run=", "--resume"):
+        assert option in done.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["su", "num_env=4"], "unknown option 'num_env'; did you mean 'num_envs'?"),
+        (["su", "num_envs=four"], "num_envs expects an integer, got 'four'"),
+        (["su", "num_envs=-8"], "num_envs must be at least 1, got -8"),
+        (["su", "ppo.gamma=1.5"], "ppo.gamma must be in (0, 1]"),
+        (["su", "env.lab=perhaps"], "env.lab expects true or false"),
+        (["su", "env.floor=3"], "'env.floor' is a group"),
+        (["walk"], "unknown preset 'walk'"),
+        (["su", "guide_run=runs/x"], "guide_run applies to env_name=nav only"),
+        (["su", "--bogus"], "unrecognized arguments: --bogus"),
+    ],
+)
+def test_bad_input_exits_with_one_line(args, message, capsys, tmp_path):
+    try:
+        code = main([*args, "--out", str(tmp_path / "run")])
+    except SystemExit as exit:  # argparse's own errors
+        code = exit.code
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1, err
+    assert message in err
+
+
+def test_resume_of_a_missing_run_is_one_line(capsys, tmp_path):
+    assert main(["--resume", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "not a run folder" in err
+
+
+def test_a_small_run_writes_everything_a_user_needs(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["quick", *TINY, "--out", str(run), "--quiet"]) == 0
+    for name in ("config.json", "metrics.jsonl", "reward_curve.png", "README.md", "policy/params.npz"):
+        assert (run / name).exists(), name
+    assert list((run / "tb").glob("events.out.tfevents.*"))
+    assert (run / "checkpoints" / "2").is_dir()
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2]
+    assert {
+        "loss/policy",
+        "loss/value",
+        "reward/distance",
+        "reward/obstacle_collision",
+        "learning_rate",
+    } <= set(rows[0])
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["preset"] == "quick" and meta["overrides"] == TINY and meta["config"]["num_envs"] == 8
+    readme = (run / "README.md").read_text()
+    assert "--resume" in readme and "export.load" in readme
+
+    policy = export.load(run)
+    assert policy.manifest["env"] == "su" and policy.manifest["observation_size"] == 72 + 25
+    assert policy.manifest["observation_layout"]["lidar"] == [0, 72]
+    action = np.asarray(policy(np.zeros((3, 97), np.float32)))
+    assert action.shape == (3, 3) and np.all(np.abs(action) <= 1)
+    # a second run into the same folder refuses rather than mixing checkpoints
+    assert main(["quick", *TINY, "--out", str(run), "--quiet"]) == 2
+    assert "--resume" in capsys.readouterr().err
+
+
+def test_presets_are_the_thesis_table():
+    su, guide, nav = (PRESETS[n][1] for n in ("su", "guide", "nav"))
+    for c in (su, guide, nav):
+        assert (c.ppo.rollouts, c.ppo.epochs, c.ppo.minibatches) == (48, 5, 8)
+        assert (c.ppo.gamma, c.ppo.lam, c.ppo.learning_rate, c.ppo.entropy_scale) == (0.99, 0.95, 5e-4, 0.005)
+    assert (su.num_envs, nav.num_envs, guide.num_envs) == (2048, 2048, 4096)
+    assert (su.timesteps, nav.timesteps, guide.timesteps) == (960_000, 960_000, 240_000)
+    assert nav.env.num_users == 2 and su.env.num_users == 1

@@ -1,0 +1,236 @@
+"""What a training run is: :class:`RunConfig`, the named presets, and ``key=value`` overrides.
+
+Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
+
+=========  =====================================================================================
+``quick``  SU on floors without obstacles (walls only), 90 LiDAR rays, a 3 x 128 body, 256
+           environments x 32 rollouts, 8.2M transitions, and a tenth of Table 4.1's velocity
+           penalty: with the full penalty a policy spends its first million or so transitions
+           learning to stand still, so a CPU-sized run would show nothing else. About 10 minutes
+           on a 2-core CPU; the robot learns to approach the HIP. The default.
+``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
+``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
+``nav``    NavRL with two users: 2,048 environments, 960,000 timesteps; the goal comes from the
+           GuideRL policy of ``guide_run=RUN_DIR`` or, without one, from the scripted source.
+=========  =====================================================================================
+
+"Timesteps" are skrl's: steps of each environment (so ``su`` is 960,000 x 2,048 transitions).
+Overrides are dotted paths into :class:`RunConfig`: ``num_envs=512``, ``ppo.learning_rate=3e-4``,
+``env.lab=true``, ``env.floor.num_circles=0,4``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import itertools
+import math
+
+import envs
+from envs.guide import GuideConfig
+from envs.nav import NavConfig
+from methd_jax.floors import FloorConfig
+from train.ppo import PPOConfig
+
+
+class ConfigError(ValueError):
+    """A preset name or override that cannot be applied; the message is one line."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything that defines a training run."""
+
+    env_name: str = "su"
+    """Environment: "su", "nav" or "guide"."""
+    env: NavConfig | GuideConfig = envs.PRESETS["su"]
+    """The environment's own options (``env.<field>=value``)."""
+    num_envs: int = 2048
+    """Parallel environments."""
+    timesteps: int = 960_000
+    """Steps per environment (skrl's timesteps); iterations = ceil(timesteps / ppo.rollouts)."""
+    ppo: PPOConfig = PPOConfig()
+    """PPO hyperparameters (``ppo.<field>=value``)."""
+    hidden: tuple[int, ...] = (512, 512, 512)
+    """Hidden layers of the shared body (SU, NavRL) or of the actor and critic MLPs (GuideRL)."""
+    init_log_std: float = 0.0
+    """Initial log standard deviation of the Gaussian policy (skrl's ``initial_log_std``)."""
+    seed: int = 0
+    """Seed of everything random in the run."""
+    guide_run: str = ""
+    """``nav`` only: a ``guide`` run folder whose exported policy drives the goal (empty: scripted)."""
+    checkpoint_every: int = 50
+    """Iterations between checkpoints (one is always written at the end)."""
+
+    def __post_init__(self):
+        if self.env_name not in envs.PRESETS:
+            raise ConfigError(f"env_name must be one of {sorted(envs.PRESETS)}, got {self.env_name!r}")
+        expected = GuideConfig if self.env_name == "guide" else NavConfig
+        if not isinstance(self.env, expected):
+            raise ConfigError(f"env must be a {expected.__name__} for {self.env_name!r}")
+        for name in ("num_envs", "timesteps", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if not self.hidden or min(self.hidden) < 1:
+            raise ConfigError(f"hidden must list positive layer widths, got {self.hidden}")
+        if self.guide_run and self.env_name != "nav":
+            raise ConfigError("guide_run applies to env_name=nav only")
+        if (self.num_envs * self.ppo.rollouts) % self.ppo.minibatches:
+            raise ConfigError(
+                f"num_envs x ppo.rollouts ({self.num_envs * self.ppo.rollouts}) must be divisible by "
+                f"ppo.minibatches ({self.ppo.minibatches})"
+            )
+
+    @property
+    def iterations(self) -> int:
+        return math.ceil(self.timesteps / self.ppo.rollouts)
+
+    @property
+    def transitions(self) -> int:
+        return self.iterations * self.ppo.rollouts * self.num_envs
+
+
+_OPEN_FLOOR = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 0), num_polygons=(0, 0))
+
+PRESETS: dict[str, tuple[str, RunConfig]] = {
+    "quick": (
+        "SU on walled floors without obstacles, 90 rays, a 3 x 128 body, a tenth of the velocity "
+        "penalty: ~10 min on a 2-core CPU, the robot learns to approach the HIP (default)",
+        RunConfig(
+            env_name="su",
+            env=dataclasses.replace(
+                envs.PRESETS["su"],
+                floor=_OPEN_FLOOR,
+                motion="sample",
+                num_rays=90,
+                weights=dataclasses.replace(envs.rewards.SU_WEIGHTS, velocity=-0.2),
+            ),
+            num_envs=256,
+            timesteps=32_000,
+            ppo=PPOConfig(rollouts=32, minibatches=4),
+            hidden=(128, 128, 128),
+            checkpoint_every=100,
+        ),
+    ),
+    "su": ("single-user policy, Table 4.4 (2,048 envs, 960k timesteps)", RunConfig()),
+    "guide": (
+        "GuideRL, Table 4.4 (4,096 envs, 240k timesteps)",
+        RunConfig(
+            env_name="guide", env=envs.PRESETS["guide"], num_envs=4096, timesteps=240_000, hidden=(128, 128)
+        ),
+    ),
+    "nav": (
+        "NavRL with two users, Table 4.3/4.4 (2,048 envs, 960k timesteps); goal from guide_run= or scripted",
+        RunConfig(env_name="nav", env=envs.PRESETS["nav"]),
+    ),
+}
+
+
+def preset(name: str) -> RunConfig:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return PRESETS[name][1]
+
+
+def _parse(text: str, like, path: str):
+    """``text`` as a value of the type of ``like`` (the current value)."""
+    if isinstance(like, bool):
+        low = text.strip().lower()
+        if low in ("1", "true", "yes", "on"):
+            return True
+        if low in ("0", "false", "no", "off"):
+            return False
+        raise ConfigError(f"{path} expects true or false, got {text!r}")
+    if isinstance(like, tuple):
+        parts = [p for p in text.split(",") if p.strip()]
+        if like and len(parts) != len(like) and len({type(v) for v in like}) > 1:
+            raise ConfigError(f"{path} expects {len(like)} comma-separated values, got {text!r}")
+        kind = type(like[0]) if like else float
+        return tuple(_parse(p, kind(0), path) for p in parts)
+    for kind, name in ((int, "an integer"), (float, "a number")):
+        if isinstance(like, kind):
+            try:
+                value = kind(text)
+            except ValueError:
+                raise ConfigError(f"{path} expects {name}, got {text!r}") from None
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ConfigError(f"{path} must be finite, got {text!r}")
+            return value
+    if isinstance(like, str):
+        return text
+    raise ConfigError(f"{path} cannot be set from the command line")
+
+
+def _set(obj, keys: list[str], text: str, path: str):
+    """``obj`` with the field at ``keys`` (a suffix of the dotted ``path``) set from ``text``."""
+    prefix = path.split(".")[: len(path.split(".")) - len(keys)]
+    fields = sorted(f.name for f in dataclasses.fields(obj))
+    key = keys[0]
+    if key not in fields:
+        near = difflib.get_close_matches(key, fields, n=1)
+        hint = f"; did you mean {'.'.join([*prefix, near[0]])!r}?" if near else ""
+        raise ConfigError(f"unknown option {path!r}{hint} (python -m train.run --help lists them)")
+    current = getattr(obj, key)
+    if dataclasses.is_dataclass(current):
+        if len(keys) == 1:
+            first = sorted(f.name for f in dataclasses.fields(current))[0]
+            raise ConfigError(f"{path!r} is a group; set one of its fields, e.g. {path}.{first}=...")
+        value = _set(current, keys[1:], text, path)
+    elif len(keys) > 1:
+        raise ConfigError(f"unknown option {path!r}: {'.'.join([*prefix, key])} has no fields")
+    else:
+        value = _parse(text, current, path)
+    try:
+        return dataclasses.replace(obj, **{key: value})
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as err:
+        raise ConfigError(f"{path}={text}: {err}") from None
+
+
+def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
+    """``config`` with each ``key=value`` applied in order; :class:`ConfigError` on any bad one."""
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"override {item!r} is not key=value")
+        key = key.strip()
+        if key == "env_name":
+            raise ConfigError("env_name is fixed by the preset; pick another preset instead")
+        config = _set(config, key.split("."), text.strip(), key)
+    return config
+
+
+def options(config: RunConfig, prefix: str = "") -> list[tuple[str, object, str]]:
+    """Every settable option: ``(dotted name, current value, docstring)``."""
+    out = []
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            out.extend(options(value, f"{prefix}{f.name}."))
+        else:
+            out.append((f"{prefix}{f.name}", value, _doc(type(config), f.name)))
+    return out
+
+
+def _doc(cls, field: str) -> str:
+    """The attribute docstring under ``field`` in ``cls``'s source (the convention of our configs)."""
+    import ast
+    import inspect
+    import textwrap
+
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError):
+        return ""
+    body = tree.body[0].body
+    for node, nxt in itertools.pairwise(body):
+        if (
+            isinstance(node, ast.AnnAssign)
+            and isinstance(node.target, ast.Name)
+            and node.target.id == field
+            and isinstance(nxt, ast.Expr)
+            and isinstance(nxt.value, ast.Constant)
+        ):
+            return " ".join(str(nxt.value.value).split())
+    return ""

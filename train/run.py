@@ -1,0 +1,387 @@
+"""``python -m train.run [PRESET] [key=value ...]``: train a policy and write a run folder.
+
+The run folder (``runs/<preset>-<time>`` unless ``--out``) holds ``config.json`` (preset, overrides,
+the resolved configuration), ``metrics.jsonl`` (one line of scalars per iteration), TensorBoard event
+files under ``tb/`` (every reward term, loss and rate), ``reward_curve.png`` (mean episode return on a
+symlog axis, as in the thesis's figures), orbax checkpoints under ``checkpoints/``, the exported
+policy under ``policy/`` and a ``README.md`` that says what was trained and how to use it.
+``--resume RUN_DIR`` continues from the newest checkpoint exactly where the run stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import networks
+from envs.guide import GuideEnv
+from envs.nav import NavEnv
+from train import export
+from train.checkpoint import Checkpoints
+from train.ppo import Trainer
+from train.presets import PRESETS, ConfigError, RunConfig, apply_overrides, options, preset
+
+THESIS_POLICY_PARAMETERS = {"su": 702_674, "nav": 706_770, "guide": 18_690}
+
+
+class NonFiniteError(RuntimeError):
+    """The loss or the parameters stopped being finite."""
+
+
+@dataclasses.dataclass
+class Setup:
+    config: RunConfig
+    env: object
+    network_spec: dict
+    trainer: Trainer
+
+
+def network_spec(config: RunConfig) -> dict:
+    if config.env_name == "guide":
+        return {
+            "class": "GuideActorCritic",
+            "hidden": list(config.hidden),
+            "init_log_std": config.init_log_std,
+        }
+    return {
+        "class": "ActorCritic",
+        "hidden": list(config.hidden),
+        "num_rays": config.env.num_rays,
+        "init_log_std": config.init_log_std,
+    }
+
+
+def build(config: RunConfig, devices=None) -> Setup:
+    """The environment, network and trainer of ``config``."""
+    if config.env_name == "guide":
+        env = GuideEnv(config.env)
+    else:
+        guide = None
+        if config.guide_run:
+            guide = export.load(config.guide_run)
+            if guide.manifest["env"] != "guide":
+                raise ConfigError(
+                    f"guide_run={config.guide_run} holds a {guide.manifest['env']!r} policy, not guide"
+                )
+        env = NavEnv(config.env, guide_policy=guide)
+    spec = network_spec(config)
+    trainer = Trainer(env, networks.from_spec(spec), config.ppo, config.num_envs, devices=devices)
+    return Setup(config, env, spec, trainer)
+
+
+def _jsonable(value):
+    if dataclasses.is_dataclass(value):
+        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, tuple | list):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def _symlog_curve(rows: list[dict], path: Path, title: str) -> None:
+    """Mean episode return and mean reward per step against transitions (symlog, as the thesis plots
+    rewards), and GuideRL's accuracy at the request when there is one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ended = [r for r in rows if r["episode/count"] > 0]
+    panels = [
+        ("mean episode return", [(r["transitions"], r["episode/return"]) for r in ended]),
+        ("mean reward per step", [(r["transitions"], r["reward/step"]) for r in rows]),
+    ]
+    acc = [(r["transitions"], 100 * r["guide/accuracy"]) for r in rows if r.get("guide/requests", 0) > 0]
+    if acc:
+        panels.append(("correct user at the request (%)", acc))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4), squeeze=False)
+    for ax, (label, pts) in zip(axes[0], panels, strict=True):
+        if pts:
+            x, y = np.array(pts).T
+            ax.plot(x, y, lw=0.8, alpha=0.45, label="per iteration")
+            k = max(1, len(y) // 20)
+            if len(y) > 2 * k > 1:
+                ax.plot(x[k - 1 :], np.convolve(y, np.ones(k) / k, mode="valid"), lw=2, label=f"mean of {k}")
+            ax.legend(loc="lower right")
+        if not label.startswith("correct"):
+            ax.set_yscale("symlog")
+        ax.set(xlabel="environment transitions", ylabel=label)
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _read_rows(path: Path, upto: int) -> list[dict]:
+    if not path.exists():
+        return []
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [r for r in rows if r["iteration"] <= upto]
+
+
+def _write_readme(run_dir: Path, setup: Setup, meta: dict, rows: list[dict]) -> None:
+    c = setup.config
+    last = [r for r in rows if r.get("episode/count", 0) > 0][-10:]
+    final_return = np.mean([r["episode/return"] for r in last]) if last else float("nan")
+    lines = [
+        f"# Training run `{run_dir.name}`",
+        "",
+        f"Preset `{meta['preset']}`"
+        + (f" with overrides `{' '.join(meta['overrides'])}`" if meta["overrides"] else ""),
+        f"({PRESETS[meta['preset']][0] if meta['preset'] in PRESETS else 'configured in Python'}).",
+        "",
+        "| | |",
+        "|---|---|",
+        f"| environment | `{c.env_name}` ({c.num_envs} parallel) |",
+        f"| iterations | {meta['iteration']} of {c.iterations} ({c.ppo.rollouts} x {c.num_envs} steps) |",
+        f"| transitions | {meta['iteration'] * c.ppo.rollouts * c.num_envs:,} |",
+        f"| network | {setup.network_spec['class']} {tuple(c.hidden)}: {meta['policy_parameters']:,} policy "
+        f"parameters ({meta['parameters']:,} with the critic) |",
+        f"| wall clock | {meta['wall_s'] / 60:.1f} min on {meta['device']} |",
+        f"| throughput | {meta['transitions_per_s']:,.0f} transitions/s (with updates, after compiling) |",
+        f"| mean episode return (last 10 iterations with episodes) | {final_return:.1f} |",
+    ]
+    if c.env_name == "guide":
+        acc = [r["guide/accuracy"] for r in rows if r.get("guide/requests", 0) > 0][-10:]
+        lines.append(f"| correct user at the request (last 10 iterations) | {100 * np.mean(acc):.1f}% |")
+    lines += [
+        "",
+        "Files: `config.json` (the resolved configuration), `metrics.jsonl` (scalars per iteration),",
+        "`tb/` (TensorBoard: `tensorboard --logdir " + str(run_dir / "tb") + "`), `reward_curve.png`,",
+        "`checkpoints/` (orbax), `policy/` (the exported policy: `params.npz` + `manifest.json`).",
+        "",
+        "Continue this run: `python -m train.run --resume " + str(run_dir) + "`",
+        "",
+        "Use the policy (deterministic, observations as the environment produces them):",
+        "",
+        "```python",
+        "import jax",
+        "from train import export, run",
+        f"policy = export.load({str(run_dir)!r})",
+        f"env = run.build(run.load_config({str(run_dir)!r})[2]).env",
+        "state = env.reset(jax.random.key(0))",
+        "state = env.step(state, policy(state.obs))",
+        "```",
+    ]
+    if c.env_name == "guide":
+        lines += ["", f"Drive NavRL's goal with it: `python -m train.run nav guide_run={run_dir}`"]
+    (run_dir / "README.md").write_text("\n".join(lines) + "\n")
+
+
+def train(
+    config: RunConfig,
+    run_dir: str | Path,
+    *,
+    preset_name: str = "custom",
+    overrides: tuple[str, ...] = (),
+    resume: bool = False,
+    progress: bool = True,
+    stop_after: int | None = None,
+    devices=None,
+) -> dict:
+    """Train ``config`` into ``run_dir`` (resuming from its newest checkpoint if ``resume``).
+
+    ``stop_after``: leave after this many iterations in total (for tests of interrupted runs); the
+    checkpoint schedule is unchanged. Returns the run's summary. Raises :class:`NonFiniteError`.
+    """
+    from tensorboardX import SummaryWriter
+    from tqdm import tqdm
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    setup = build(config, devices)
+    trainer = setup.trainer
+    meta = {
+        "preset": preset_name,
+        "overrides": list(overrides),
+        "config": _jsonable(config),
+        "device": f"{trainer.mesh.devices.size} x {jax.devices()[0].device_kind} ({jax.default_backend()})",
+    }
+    (run_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+    log = (lambda *a: tqdm.write(" ".join(map(str, a)), file=sys.stderr)) if progress else (lambda *a: None)
+    init = jax.jit(trainer.init)
+    update = jax.jit(trainer.update)
+    state = init(jax.random.key(config.seed))
+    ckpts = Checkpoints(run_dir / "checkpoints")
+    start = 0
+    if resume:
+        state = ckpts.restore(state)
+        start = int(state.iteration)
+        log(f"resumed {run_dir} at iteration {start}")
+    rows = _read_rows(run_dir / "metrics.jsonl", start)
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+    params = state.params
+    meta["parameters"], meta["policy_parameters"] = networks.count(params), networks.policy_count(params)
+    thesis = THESIS_POLICY_PARAMETERS[config.env_name]
+    log(
+        f"{setup.network_spec['class']}: {meta['policy_parameters']:,} policy params (thesis {thesis:,}), "
+        f"{meta['parameters']:,} with the critic; {config.num_envs} envs on {meta['device']}; "
+        f"{config.iterations} iterations of {trainer.transitions_per_iteration:,} transitions"
+    )
+
+    per = trainer.transitions_per_iteration
+    end = config.iterations if stop_after is None else min(config.iterations, stop_after)
+    writer = SummaryWriter(str(run_dir / "tb"))
+    bar = tqdm(
+        total=config.iterations * per,
+        initial=start * per,
+        unit="steps",
+        unit_scale=True,
+        disable=not progress,
+        dynamic_ncols=True,
+        mininterval=2.0,
+        file=sys.stderr,
+    )
+    t_begin, timed, timed_s = time.perf_counter(), 0, 0.0
+    episodes = {"return": "-", "len": "-"}
+    last_saved = ckpts.latest()
+    try:
+        for it in range(start, end):
+            t0 = time.perf_counter()
+            new_state, m = update(state)
+            m = {k: float(v) for k, v in jax.device_get(m).items()}
+            dt = time.perf_counter() - t0
+            if not m.pop("finite"):
+                where = (
+                    f"iteration {last_saved} in {ckpts.directory}" if last_saved is not None else "none yet"
+                )
+                raise NonFiniteError(
+                    f"non-finite loss or parameters at iteration {it + 1}; stopped. Last good checkpoint: "
+                    + where
+                )
+            state = new_state
+            if it > start:  # the first iteration of a process includes compilation
+                timed, timed_s = timed + 1, timed_s + dt
+            row = {"iteration": it + 1, "transitions": (it + 1) * per, "seconds": dt, **m}
+            with (run_dir / "metrics.jsonl").open("a") as f:
+                f.write(json.dumps(row) + "\n")
+            rows.append(row)
+            for k, v in m.items():
+                if k.startswith("episode/") and m["episode/count"] == 0:
+                    continue
+                writer.add_scalar(k, v, row["transitions"])
+            writer.add_scalar("perf/transitions_per_s", per / dt, row["transitions"])
+            if m["episode/count"] > 0:
+                episodes = {"return": f"{m['episode/return']:.1f}", "len": f"{m['episode/length'] / 50:.1f}s"}
+            post = dict(episodes)
+            if "guide/accuracy" in m:
+                post["acc"] = f"{100 * m['guide/accuracy']:.0f}%"
+            bar.set_postfix(post, refresh=False)
+            bar.update(per)
+            if (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations:
+                ckpts.save(it + 1, state)
+                last_saved = it + 1
+                _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
+    finally:
+        bar.close()
+        writer.close()
+        ckpts.close()
+
+    meta["iteration"] = int(state.iteration)
+    meta["wall_s"] = time.perf_counter() - t_begin
+    meta["transitions_per_s"] = timed * per / timed_s if timed else per * max(1, end - start) / meta["wall_s"]
+    export.export(
+        run_dir / "policy",
+        env_name=config.env_name,
+        env=setup.env,
+        network_spec=setup.network_spec,
+        params=state.params,
+        obs_stats=state.obs_stats,
+        obs_clip=config.ppo.obs_clip,
+        trained={"run": str(run_dir), "iteration": meta["iteration"], "transitions": meta["iteration"] * per},
+    )
+    _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
+    _write_readme(run_dir, setup, meta, rows)
+    log(f"wrote {run_dir} ({meta['transitions_per_s']:,.0f} transitions/s)")
+    return {**meta, "rows": rows, "state": state}
+
+
+def _help_epilog() -> str:
+    lines = ["presets:"]
+    lines += [f"  {name:<7} {text}" for name, (text, _) in PRESETS.items()]
+    lines += ["", "options (key=value; defaults of the su preset; tuples comma-separated):"]
+    for name, value, doc in options(preset("su")):
+        shown = ",".join(map(str, value)) if isinstance(value, tuple) else value
+        lines.append(f"  {name}={shown}" + (f"  -- {doc}" if doc else ""))
+    lines += ["", "example: python -m train.run su num_envs=1024 ppo.learning_rate=3e-4 env.lab=true"]
+    return "\n".join(lines)
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def load_config(run_dir: str | Path) -> tuple[str, list[str], RunConfig]:
+    """The preset, overrides and configuration of the run in ``run_dir``."""
+    meta_path = Path(run_dir) / "config.json"
+    if not meta_path.exists():
+        raise ConfigError(f"{run_dir} is not a run folder (no config.json)")
+    meta = json.loads(meta_path.read_text())
+    return meta["preset"], meta["overrides"], apply_overrides(preset(meta["preset"]), meta["overrides"])
+
+
+def main(argv=None) -> int:
+    parser = _OneLineParser(
+        prog="python -m train.run",
+        description="Train the thesis's policies with PPO and write a run folder.",
+        epilog=_help_epilog(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "preset", nargs="?", default="quick", help="one of: " + ", ".join(PRESETS) + " (default quick)"
+    )
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="options to change (listed below)")
+    parser.add_argument("--out", type=Path, help="run folder (default: runs/<preset>-<date>-<time>)")
+    parser.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue the run in RUN_DIR")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    overrides = list(args.overrides)
+    if "=" in args.preset:  # `python -m train.run num_envs=8`: the preset was left out
+        overrides.insert(0, args.preset)
+        args.preset = "quick"
+    try:
+        if args.resume is not None:
+            if overrides or args.out is not None:
+                raise ConfigError("--resume continues a run as configured; start a new run to change options")
+            name, overrides, config = load_config(args.resume)
+            run_dir = args.resume
+        else:
+            name = args.preset
+            config = apply_overrides(preset(name), overrides)
+            run_dir = args.out or Path("runs") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+            if (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
+                raise ConfigError(
+                    f"{run_dir} already holds checkpoints; use --resume {run_dir} or another --out"
+                )
+        train(
+            config,
+            run_dir,
+            preset_name=name,
+            overrides=tuple(overrides),
+            resume=args.resume is not None,
+            progress=not args.quiet,
+        )
+    except (ConfigError, FileNotFoundError) as err:
+        print(f"python -m train.run: error: {err}", file=sys.stderr)
+        return 2
+    except NonFiniteError as err:
+        print(f"train.run: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("train.run: interrupted; resume with --resume from the last checkpoint", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
