@@ -3,7 +3,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from networks import ActorCritic, GuidePolicy, count, policy_count
+import networks
+from networks import ActorCritic, GuidePolicy, actor_critic, count, policy_count
 
 
 @pytest.mark.parametrize(("state_size", "thesis"), [(25, 702_674), (33, 706_770)], ids=["su", "nav"])
@@ -37,3 +38,44 @@ def test_actor_critic_uses_the_lidar_and_the_state():
     lidar_changed = net.apply(params, obs.at[:, 100].add(1.0))[0]
     state_changed = net.apply(params, obs.at[:, 740].add(1.0))[0]
     assert not np.allclose(base, lidar_changed) and not np.allclose(base, state_changed)
+
+
+@pytest.mark.parametrize("stride", [1, 3, 4])
+def test_conv1d_and_its_gradient_match_xla_convolution(stride):
+    rng = np.random.default_rng(stride)
+    x = jnp.asarray(rng.normal(size=(5, 40, 3)), jnp.float32)
+    w = jnp.asarray(rng.normal(size=(4, 3, 6)), jnp.float32)
+    g = jnp.asarray(rng.normal(size=(5, (40 - 4) // stride + 1, 6)), jnp.float32)
+
+    def xla(x, w):
+        return jax.lax.conv_general_dilated(x, w, (stride,), "VALID", dimension_numbers=("NWC", "WIO", "NWC"))
+
+    ours = actor_critic.conv1d(x, w, stride)
+    np.testing.assert_allclose(ours, xla(x, w), rtol=1e-5, atol=1e-5)
+    want = jax.vjp(xla, x, w)[1](g)
+    got = jax.vjp(lambda x, w: actor_critic.conv1d(x, w, stride), x, w)[1](g)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+
+
+def test_guide_actor_critic_keeps_the_policy_at_18690_and_adds_a_critic():
+    net = networks.GuideActorCritic()
+    params = net.init(jax.random.key(0), jnp.zeros((2, 15)))
+    mean, log_std, value = net.apply(params, jnp.ones((2, 15)))
+    assert mean.shape == log_std.shape == (2, 1) and value.shape == (2,)
+    assert networks.policy_count(params) == 18_690
+    assert networks.count(params) == 2 * 18_690 - 1  # the critic: the same MLP without a log-std
+
+
+def test_too_few_rays_for_the_encoder_is_a_clear_error():
+    with pytest.raises(ValueError, match="too few"):
+        networks.ActorCritic(num_rays=40).init(jax.random.key(0), jnp.zeros((1, 40 + 25)))
+
+
+def test_from_spec_rebuilds_the_module():
+    net = networks.from_spec({"class": "ActorCritic", "hidden": [16], "num_rays": 72, "init_log_std": -1.0})
+    params = net.init(jax.random.key(0), jnp.zeros((1, 97)))
+    assert np.allclose(params["params"]["log_std"], -1.0)
+    assert params["params"]["body0"]["kernel"].shape == (64 + 25, 16)
+    with pytest.raises(ValueError, match="unknown network class"):
+        networks.from_spec({"class": "Transformer"})
