@@ -19,6 +19,17 @@ jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
+TINY_RUN = (
+    "env.num_rays=72",  # the fewest the encoder takes
+    "env.motion=sample",
+    "hidden=32,32",
+    "num_envs=8",
+    "ppo.rollouts=4",
+    "ppo.minibatches=2",
+    "ppo.epochs=2",
+)
+"""Overrides of the quick preset for a seconds-scale training run (tests of the machinery)."""
+
 RAY_HEIGHT = 0.5  # to_mjcf's default obstacles are 1 m tall; scan at mid-height
 
 

@@ -10,22 +10,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import TINY_RUN
 
 from train import ppo
 from train.presets import apply_overrides, preset
 from train.run import NonFiniteError, build, train
 
-# A seconds-scale SU run: 72 rays (the fewest the encoder takes), a small body, the 4 sample users.
-TINY = (
-    "env.num_rays=72",
-    "env.motion=sample",
-    "hidden=32,32",
-    "num_envs=8",
-    "ppo.rollouts=4",
-    "ppo.minibatches=2",
-    "ppo.epochs=2",
-    "checkpoint_every=2",
-)
+TINY = (*TINY_RUN, "checkpoint_every=2")
 
 
 def tiny(*extra):

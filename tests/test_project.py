@@ -27,7 +27,7 @@ def test_readme_has_exactly_two_setup_commands_and_ci_runs_the_test_one():
     setup = readme.split("## Set up", 1)[1].split("\n## ", 1)[0]
     commands = re.findall(r"```bash\n(.*?)\n```", setup, re.S)
     assert commands == [
-        "python -m pip install -e . && python -m train.bench",
+        "python -m pip install -e . && python -m train.run",
         "python -m pip install -e '.[test]' && python -m pytest",
     ]
     ci = subprocess.run(
@@ -52,6 +52,8 @@ def test_bench_cli_smoke(tmp_path):
             "8",
             "--env-sizes",
             "4",
+            "--train-envs",
+            "8",
             "--repeats",
             "1",
             "--json",
@@ -71,8 +73,9 @@ def test_bench_cli_smoke(tmp_path):
     assert res["robot"]["robots"] == 8 and res["robot"]["robot_steps_per_s"] > 0
     assert [(r["env"], r["envs"]) for r in res["envs"]] == [("su", 4), ("nav", 4)]
     assert all(r["env_steps_per_s"] > 0 for r in res["envs"])
-    assert [(r["env"], r["envs"]) for r in res["envs"]] == [("su", 4), ("nav", 4)]
-    assert all(r["env_steps_per_s"] > 0 for r in res["envs"])
+    train = res["train"]
+    assert train["envs"] == 8 and train["transitions_per_iteration"] == 8 * 48
+    assert train["transitions_per_s"] == pytest.approx(8 * 48 / train["iteration_s"])
 
 
 @pytest.mark.parametrize("args", [["--sizes", "0"], ["--repeats", "-1"], ["--bogus"]])

@@ -6,21 +6,13 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import TINY_RUN
 
 from train import export
 from train.presets import PRESETS
 from train.run import main
 
-TINY = [
-    "env.num_rays=72",
-    "env.motion=sample",
-    "hidden=32,32",
-    "num_envs=8",
-    "ppo.rollouts=4",
-    "ppo.minibatches=2",
-    "ppo.epochs=2",
-    "timesteps=8",
-]
+TINY = [*TINY_RUN, "timesteps=8"]
 
 
 def test_help_lists_presets_and_options():

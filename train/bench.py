@@ -9,6 +9,9 @@ Sections (each timed in this one process, on whatever JAX device is default):
 * ``robot``: MJX base steps (one 50 Hz control tick each) per second for a fleet.
 * ``envs``: ``su`` and ``nav`` environment steps per second (LiDAR, noise, MJX base, users, rewards),
   with the shipped sample trajectories (the replayed data does not change the cost).
+* ``train``: PPO iterations of the ``su`` preset (Table 4.4: 48 rollouts, 5 epochs x 8 minibatches,
+  the 702k-parameter network) at ``--train-envs`` environments: transitions per second with the
+  updates included, the figure the thesis's Isaac Lab setup reached at about 76,000/s (RTX 4090).
 
 Timings: each function is compiled and run once (compile time reported separately), then run
 ``--repeats`` times, alternating ours and the peer; the median is reported.
@@ -213,6 +216,31 @@ def bench_envs(sizes: list[int], repeats: int, log) -> list[dict]:
     return rows
 
 
+def bench_train(num_envs: int, repeats: int, log) -> dict:
+    from train.presets import apply_overrides, preset
+    from train.run import build
+
+    config = apply_overrides(preset("su"), ["env.motion=sample", f"num_envs={num_envs}"])
+    trainer = build(config).trainer
+    state = jax.jit(trainer.init)(jax.random.key(0))
+    update = jax.jit(trainer.update)
+    c, times = _timed(lambda s: update(s)[1], (state,), repeats)
+    per = trainer.transitions_per_iteration
+    row = {
+        "preset": "su",
+        "envs": num_envs,
+        "transitions_per_iteration": per,
+        "iteration_s": statistics.median(times),
+        "transitions_per_s": per / statistics.median(times),
+        "compile_s": c,
+    }
+    log(
+        f"  train    su {num_envs:>6} envs: {row['transitions_per_s']:>10,.0f} transitions/s "
+        f"(PPO iteration of {per:,} transitions in {row['iteration_s']:.1f} s, updates included)"
+    )
+    return row
+
+
 def machine() -> dict:
     dev = jax.devices()[0]
     return {
@@ -237,15 +265,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", help="floor batch sizes for the LiDAR section")
     p.add_argument("--robots", type=int, help="fleet size for the robot section (default 4096)")
     p.add_argument("--env-sizes", type=int, nargs="+", help="batch sizes for the environment section")
+    p.add_argument("--train-envs", type=int, help="environments for the training section (default 2048)")
     p.add_argument("--repeats", type=int, help="timed runs per measurement")
     p.add_argument("--json", help="also write the results as JSON to this path")
     args = p.parse_args(argv)
     sizes = args.sizes or ([64, 256] if args.quick else [64, 1024, 4096])
     robots = args.robots or (512 if args.quick else 4096)
     env_sizes = args.env_sizes or ([64, 256] if args.quick else [256, 2048, 8192])
+    train_envs = args.train_envs or (16 if args.quick else 2048)
     repeats = args.repeats or (3 if args.quick else 7)
-    if min(sizes) < 1 or robots < 1 or repeats < 1 or min(env_sizes) < 1:
-        p.error("--sizes, --env-sizes, --robots and --repeats must be positive")
+    if min(sizes) < 1 or robots < 1 or repeats < 1 or min(env_sizes) < 1 or train_envs < 1:
+        p.error("--sizes, --env-sizes, --robots, --train-envs and --repeats must be positive")
 
     def log(msg):
         print(msg, flush=True)
@@ -261,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
         "floors": bench_floors(max(sizes), repeats, log),
         "robot": bench_robot(robots, repeats, log),
         "envs": bench_envs(env_sizes, repeats, log),
+        # a PPO iteration is long: a few repeats give a stable median
+        "train": bench_train(train_envs, min(repeats, 3), log),
     }
     results["peak_host_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     log(f"  peak host memory {results['peak_host_memory_mb']:.0f} MB")

@@ -29,11 +29,12 @@ ACTIONS = {
 }
 
 
-def _jsonable(value):
+def jsonable(value):
+    """Dataclasses as dicts and tuples as lists, recursively (for JSON)."""
     if dataclasses.is_dataclass(value):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, tuple | list):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     return value
 
 
@@ -55,7 +56,7 @@ def export(path: str | Path, *, env_name, env, network_spec, params, obs_stats, 
     manifest = {
         "format": FORMAT,
         "env": env_name,
-        "env_config": _jsonable(env.config),
+        "env_config": jsonable(env.config),
         "observation_size": env.observation_size,
         "observation_layout": layout,
         "observation_clip": obs_clip,

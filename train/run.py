@@ -76,14 +76,6 @@ def build(config: RunConfig, devices=None) -> Setup:
     return Setup(config, env, spec, trainer)
 
 
-def _jsonable(value):
-    if dataclasses.is_dataclass(value):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, tuple | list):
-        return [_jsonable(v) for v in value]
-    return value
-
-
 def _symlog_curve(rows: list[dict], path: Path, title: str) -> None:
     """Mean episode return and mean reward per step against transitions (symlog, as the thesis plots
     rewards), and GuideRL's accuracy at the request when there is one."""
@@ -201,7 +193,7 @@ def train(
     meta = {
         "preset": preset_name,
         "overrides": list(overrides),
-        "config": _jsonable(config),
+        "config": export.jsonable(config),
         "device": f"{trainer.mesh.devices.size} x {jax.devices()[0].device_kind} ({jax.default_backend()})",
     }
     (run_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
