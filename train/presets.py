@@ -4,9 +4,9 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
 
 =========  =====================================================================================
 ``quick``  SU on floors without obstacles (walls only), 90 LiDAR rays, a 3 x 128 body, 256
-           environments x 32 rollouts, 8.2M transitions, and a tenth of Table 4.1's velocity
+           environments x 32 rollouts, 4.1M transitions, and a tenth of Table 4.1's velocity
            penalty: with the full penalty a policy spends its first million or so transitions
-           learning to stand still, so a CPU-sized run would show nothing else. About 10 minutes
+           learning to stand still, so a CPU-sized run would show nothing else. About 7 minutes
            on a 2-core CPU; the robot learns to approach the HIP. The default.
 ``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
 ``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
@@ -95,7 +95,7 @@ _OPEN_FLOOR = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 0), num_polygo
 PRESETS: dict[str, tuple[str, RunConfig]] = {
     "quick": (
         "SU on walled floors without obstacles, 90 rays, a 3 x 128 body, a tenth of the velocity "
-        "penalty: ~10 min on a 2-core CPU, the robot learns to approach the HIP (default)",
+        "penalty: ~7 min on a 2-core CPU, the robot learns to approach the HIP (default)",
         RunConfig(
             env_name="su",
             env=dataclasses.replace(
@@ -106,7 +106,7 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
                 weights=dataclasses.replace(envs.rewards.SU_WEIGHTS, velocity=-0.2),
             ),
             num_envs=256,
-            timesteps=32_000,
+            timesteps=16_000,
             ppo=PPOConfig(rollouts=32, minibatches=4),
             hidden=(128, 128, 128),
             checkpoint_every=100,
