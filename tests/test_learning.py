@@ -94,7 +94,7 @@ def test_guide_policy_learns_and_a_stillness_rule_shows_the_task_is_solvable(tmp
         return jnp.where(jnp.minimum(*speed) < 0.05, toward, back)[:, None]
 
     policies = {**_policies(setup, out["state"], 1), "still_user": still_user}
-    results = {name: _evaluate(setup, fn, jax.random.key(4), steps=2500) for name, fn in policies.items()}
+    results = {name: _evaluate(setup, fn, jax.random.key(4), steps=1500) for name, fn in policies.items()}
     accuracy = {
         name: m["correct_at_request"].sum() / max(m["at_request"].sum(), 1)
         for name, (_, m) in results.items()

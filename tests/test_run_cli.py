@@ -96,3 +96,18 @@ def test_presets_are_the_thesis_table():
     assert (su.num_envs, nav.num_envs, guide.num_envs) == (2048, 2048, 4096)
     assert (su.timesteps, nav.timesteps, guide.timesteps) == (960_000, 960_000, 240_000)
     assert nav.env.num_users == 2 and su.env.num_users == 1
+
+
+def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
+    guide = tmp_path / "guide"
+    small = ["env.motion=sample", "hidden=16,16", "num_envs=8", "ppo.rollouts=4", "ppo.minibatches=2"]
+    assert main(["guide", *small, "ppo.epochs=1", "timesteps=4", "--out", str(guide), "--quiet"]) == 0
+    nav = tmp_path / "nav"
+    args = ["nav", *TINY, f"guide_run={guide}", "--out", str(nav), "--quiet"]
+    assert main(args) == 0
+    manifest = export.load(nav).manifest
+    assert manifest["env"] == "nav" and manifest["observation_size"] == 72 + 33
+    # a policy of the wrong kind is refused with one line
+    assert main(["nav", *TINY, f"guide_run={nav}", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "not a guide policy" in err

@@ -67,9 +67,8 @@ def build(config: RunConfig, devices=None) -> Setup:
         if config.guide_run:
             guide = export.load(config.guide_run)
             if guide.manifest["env"] != "guide":
-                raise ConfigError(
-                    f"guide_run={config.guide_run} holds a {guide.manifest['env']!r} policy, not guide"
-                )
+                kind = guide.manifest["env"]
+                raise ConfigError(f"guide_run={config.guide_run} holds a {kind!r} policy, not a guide policy")
         env = NavEnv(config.env, guide_policy=guide)
     spec = network_spec(config)
     trainer = Trainer(env, networks.from_spec(spec), config.ppo, config.num_envs, devices=devices)
@@ -142,7 +141,8 @@ def _write_readme(run_dir: Path, setup: Setup, meta: dict, rows: list[dict]) -> 
     ]
     if c.env_name == "guide":
         acc = [r["guide/accuracy"] for r in rows if r.get("guide/requests", 0) > 0][-10:]
-        lines.append(f"| correct user at the request (last 10 iterations) | {100 * np.mean(acc):.1f}% |")
+        shown = f"{100 * np.mean(acc):.1f}%" if acc else "no request reached yet"
+        lines.append(f"| correct user at the request (last 10 iterations) | {shown} |")
     lines += [
         "",
         "Files: `config.json` (the resolved configuration), `metrics.jsonl` (scalars per iteration),",
