@@ -35,6 +35,7 @@ def test_help_lists_presets_and_options():
         (["su", "ppo.gamma=1.5"], "ppo.gamma must be in (0, 1]"),
         (["su", "env.lab=perhaps"], "env.lab expects true or false"),
         (["su", "env.floor=3"], "'env.floor' is a group"),
+        (["su", "env.floor.room_size=13"], "env.floor.room_size expects 2 comma-separated values"),
         (["walk"], "unknown preset 'walk'"),
         (["su", "guide_run=runs/x"], "guide_run applies to env_name=nav only"),
         (["su", "--bogus"], "unrecognized arguments: --bogus"),

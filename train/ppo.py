@@ -251,7 +251,6 @@ class Trainer:
         self.num_envs = num_envs
         self.mesh = Mesh(np.array(devices), ("envs",))
         self._sharded = NamedSharding(self.mesh, P("envs"))
-        self._replicated = NamedSharding(self.mesh, P())
         self.optimizer = optax.chain(
             optax.clip_by_global_norm(config.grad_norm_clip)
             if config.grad_norm_clip > 0

@@ -21,10 +21,14 @@ Overrides are dotted paths into :class:`RunConfig`: ``num_envs=512``, ``ppo.lear
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import difflib
+import functools
+import inspect
 import itertools
 import math
+import textwrap
 
 import envs
 from envs.guide import GuideConfig
@@ -132,8 +136,9 @@ def preset(name: str) -> RunConfig:
     return PRESETS[name][1]
 
 
-def _parse(text: str, like, path: str):
-    """``text`` as a value of the type of ``like`` (the current value)."""
+def _parse(text: str, like, path: str, variable_length: bool = False):
+    """``text`` as a value of the type of ``like`` (the current value); tuples keep their length
+    unless ``variable_length``."""
     if isinstance(like, bool):
         low = text.strip().lower()
         if low in ("1", "true", "yes", "on"):
@@ -143,7 +148,7 @@ def _parse(text: str, like, path: str):
         raise ConfigError(f"{path} expects true or false, got {text!r}")
     if isinstance(like, tuple):
         parts = [p for p in text.split(",") if p.strip()]
-        if like and len(parts) != len(like) and len({type(v) for v in like}) > 1:
+        if not variable_length and len(parts) != len(like):
             raise ConfigError(f"{path} expects {len(like)} comma-separated values, got {text!r}")
         kind = type(like[0]) if like else float
         return tuple(_parse(p, kind(0), path) for p in parts)
@@ -179,7 +184,8 @@ def _set(obj, keys: list[str], text: str, path: str):
     elif len(keys) > 1:
         raise ConfigError(f"unknown option {path!r}: {'.'.join([*prefix, key])} has no fields")
     else:
-        value = _parse(text, current, path)
+        annotation = str(next(f.type for f in dataclasses.fields(obj) if f.name == key))
+        value = _parse(text, current, path, variable_length="..." in annotation)
     try:
         return dataclasses.replace(obj, **{key: value})
     except ConfigError:
@@ -214,23 +220,23 @@ def options(config: RunConfig, prefix: str = "") -> list[tuple[str, object, str]
 
 
 def _doc(cls, field: str) -> str:
-    """The attribute docstring under ``field`` in ``cls``'s source (the convention of our configs)."""
-    import ast
-    import inspect
-    import textwrap
+    return _field_docs(cls).get(field, "")
 
+
+@functools.cache
+def _field_docs(cls) -> dict[str, str]:
+    """The attribute docstrings in ``cls``'s source (the convention of our configs), by field."""
     try:
         tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
     except (OSError, TypeError):
-        return ""
-    body = tree.body[0].body
-    for node, nxt in itertools.pairwise(body):
+        return {}
+    docs = {}
+    for node, nxt in itertools.pairwise(tree.body[0].body):
         if (
             isinstance(node, ast.AnnAssign)
             and isinstance(node.target, ast.Name)
-            and node.target.id == field
             and isinstance(nxt, ast.Expr)
             and isinstance(nxt.value, ast.Constant)
         ):
-            return " ".join(str(nxt.value.value).split())
-    return ""
+            docs[node.target.id] = " ".join(str(nxt.value.value).split())
+    return docs
