@@ -290,8 +290,8 @@ class NavEnv(Env):
             dynamics=dynamics,
             key=keys[8],
         )
-        world = self._update_goal(world, self._user_features(world), keys[9], scripted_step=False)
-        obs, terms, metrics = self._observe(world, jnp.zeros(3), keys[10])
+        world = self.update_goal(world, self._user_features(world), keys[9], scripted_step=False)
+        obs, terms, metrics = self.observe(world, jnp.zeros(3), keys[10])
         _, weighted = rewards.total(terms, cfg.weights)
         metrics = _step_metrics(metrics, weighted, terms, jnp.bool_(False), jnp.bool_(False))
         zero = jnp.float32(0.0)
@@ -309,11 +309,7 @@ class NavEnv(Env):
         w: World = state.pipeline_state
         key, k_noise, k_goal = jax.random.split(w.key, 3)
         a = jnp.clip(action, -1.0, 1.0)
-        wa = cfg.action_weights
-        blended = wa[0] * a + wa[1] * w.actions[0] + wa[2] * w.actions[1]  # eq. 4.18
-        cmd = blended * self._scale
-        cmd = cmd.at[:2].set(jnp.where(jnp.abs(cmd[:2]) < cfg.deadzone_linear, 0.0, cmd[:2]))
-        cmd = cmd.at[2].set(jnp.where(jnp.abs(cmd[2]) < cfg.deadzone_angular, 0.0, cmd[2]))
+        cmd = self.command(a, w.actions)
         if cfg.action_latency:
             applied, pending = w.pending[0], jnp.concatenate([w.pending[1:], cmd[None]])
         else:
@@ -321,8 +317,9 @@ class NavEnv(Env):
         model = self.robot.scaled_model(w.dynamics[0], w.dynamics[1]) if cfg.randomize_dynamics else None
         robot = self.robot.step(w.robot, applied, model)
         w = w.replace(robot=robot, t=w.t + 1, pending=pending, key=key)
-        w = self._update_goal(w, self._user_features(w), k_goal, scripted_step=True)
-        obs, terms, metrics = self._observe(w, a, k_noise)
+        users = self._user_features(w)
+        w = self.update_goal(w, users, k_goal, scripted_step=True)
+        obs, terms, metrics = self.observe(w, a, k_noise, users)
         reward, weighted = rewards.total(terms, cfg.weights)
 
         collided = (terms["obstacle_collision"] > 0) | (terms["user_collision"] > 0)
@@ -347,10 +344,20 @@ class NavEnv(Env):
 
     # -- pieces ----------------------------------------------------------------------------------
 
+    def command(self, action: jax.Array, previous: jax.Array) -> jax.Array:
+        """The base's robot-frame velocity command for policy ``action`` in [-1, 1]^3 after the
+        previous two actions ``previous`` (2, 3): interpolation (4.18), scaling, dead zone (4.19-4.21)."""
+        cfg = self.config
+        wa = cfg.action_weights
+        blended = wa[0] * action + wa[1] * previous[0] + wa[2] * previous[1]
+        cmd = blended * self._scale
+        cmd = cmd.at[:2].set(jnp.where(jnp.abs(cmd[:2]) < cfg.deadzone_linear, 0.0, cmd[:2]))
+        return cmd.at[2].set(jnp.where(jnp.abs(cmd[2]) < cfg.deadzone_angular, 0.0, cmd[2]))
+
     def _user_features(self, w: World) -> dict[str, jax.Array]:
         return jax.vmap(self.bank.at, (0, None))(w.users, w.t)
 
-    def _update_goal(self, w: World, users: dict, key: jax.Array, scripted_step: bool) -> World:
+    def update_goal(self, w: World, users: dict, key: jax.Array, scripted_step: bool) -> World:
         """The goal: the requester's HIP after the request (and always with one user); before it,
         u_w from a GuideRL policy or the scripted source (2 users), or a scripted target user (N != 2)."""
         cfg = self.config
@@ -382,11 +389,14 @@ class NavEnv(Env):
         goal = jnp.where(requested, hips[w.requester], goal)
         return w.replace(goal=goal, u_w=u_w, goal_target=target, guide_actions=guide_actions)
 
-    def _observe(self, w: World, action: jax.Array, key: jax.Array):
-        """The observation, the unweighted reward terms and the step's diagnostics."""
+    def observe(self, w: World, action: jax.Array, key: jax.Array, users: dict | None = None):
+        """The observation, the unweighted reward terms and the step's diagnostics.
+
+        ``users`` (features of :meth:`MotionBank.at`, stacked per user) replaces the users that
+        ``w.users`` and ``w.t`` index, for callers that replay users differently (evaluation)."""
         cfg = self.config
         pose = robot_lib.pose(w.robot)
-        users = self._user_features(w)
+        users = self._user_features(w) if users is None else users
         user_xy = users["pose"][:, :2]
         extra = None
         if cfg.users_visible:

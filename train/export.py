@@ -38,6 +38,26 @@ def jsonable(value):
     return value
 
 
+def from_jsonable(default, data: dict):
+    """The inverse of :func:`jsonable` for a dataclass: ``default`` with the fields in ``data``
+    (nested dataclasses and tuples rebuilt from dicts and lists)."""
+
+    def as_tuple(v):
+        return tuple(as_tuple(x) for x in v) if isinstance(v, list) else v
+
+    changes = {}
+    for f in dataclasses.fields(default):
+        if f.name not in data:
+            continue
+        current, value = getattr(default, f.name), data[f.name]
+        if dataclasses.is_dataclass(current):
+            value = from_jsonable(current, value)
+        elif isinstance(current, tuple):
+            value = as_tuple(value)
+        changes[f.name] = value
+    return dataclasses.replace(default, **changes)
+
+
 def export(path: str | Path, *, env_name, env, network_spec, params, obs_stats, obs_clip, trained) -> Path:
     """Write ``params.npz`` and ``manifest.json`` into the folder ``path``; returns it."""
     path = Path(path)

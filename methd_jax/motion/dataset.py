@@ -24,7 +24,7 @@ DEFAULT_SIZE = 442
 """Trajectories in the thesis dataset."""
 TEST_SIZE = 100
 """Consecutive held-out trajectories in the thesis's test set."""
-FORMAT = 1
+FORMAT = 2
 """Bump when the cached layout or the generator's output changes."""
 
 

@@ -79,6 +79,11 @@ class SynthConfig:
     """Standard deviation of the tracking noise added to positions, m."""
     gap: tuple[float, float] = (3.0, 15.0)
     """Time between consecutive recordings, s."""
+    hip_clearance: float = 0.87
+    """Having stopped, the participant turns to face a virtual object placed where the robot can
+    present it: the first heading (the walking direction, then turned by 20, 40, ... degrees) whose
+    HIP (``HipConfig`` defaults) is this far from obstacles and walls (the robot's radius plus 0.1 m).
+    0 keeps the walking direction."""
 
     def __post_init__(self):
         if not (self.path_length_mean > 0 and self.path_length_sd > 0 and self.clearance >= 0):
@@ -183,6 +188,21 @@ def _speed_profile(rng, seg_len: np.ndarray, vmax: np.ndarray, stops: np.ndarray
     return s, v, stop_idx
 
 
+def _facing(room: _Room, xy: np.ndarray, yaw: float, clearance: float) -> float:
+    """The heading nearest ``yaw`` (in 20 degree steps) whose HIP has ``clearance``; else ``yaw``."""
+    from methd_jax.motion.features import HipConfig
+
+    hip = HipConfig()
+    for k in range(19):
+        turn = math.radians(20 * ((k + 1) // 2)) * (1 if k % 2 else -1)
+        h = yaw + turn
+        c, s = math.cos(h), math.sin(h)
+        spot = xy + np.array([c * hip.distance - s * hip.lateral, s * hip.distance + c * hip.lateral])
+        if room.clear(spot, clearance):
+            return h
+    return yaw
+
+
 def _one(rng, room: _Room, start_xy: np.ndarray, start_yaw: float, cfg: SynthConfig, height: float):
     """One trajectory as arrays (time, head (T, 7), wrist (T, 7), request time)."""
     k = (cfg.path_length_mean / cfg.path_length_sd) ** 2
@@ -268,6 +288,9 @@ def _one(rng, room: _Room, start_xy: np.ndarray, start_yaw: float, cfg: SynthCon
             body_vec[i] = hold
         else:  # before walking off: turn from the start yaw toward the first heading
             body_vec[i] = np.array([math.cos(start_yaw), math.sin(start_yaw)])
+    if cfg.hip_clearance > 0:
+        final = _facing(room, xy[-1], math.atan2(body_vec[-1, 1], body_vec[-1, 0]), cfg.hip_clearance)
+        body_vec[time >= t_walk_end] = [math.cos(final), math.sin(final)]
     body_vec = gaussian_smooth(body_vec, 0.25 * RATE_HZ)
     body_yaw = np.arctan2(body_vec[:, 1], body_vec[:, 0])
 

@@ -1,0 +1,328 @@
+"""The evaluation harness: navigator, behaviour engine, metrics, statistics, ``python -m train.evaluate``."""
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats as st
+
+from methd_jax import floors, motion
+from methd_jax.evaluation import engine as E
+from methd_jax.evaluation import methods as M
+from methd_jax.evaluation import metrics, stats
+from methd_jax.evaluation import navigator as nav
+from methd_jax.motion.features import MotionBank
+from methd_jax.motion.trajectory import Trajectory, quat_from_yaw_pitch
+
+ROOM = (-6.0, -6.0, 6.0, 6.0)
+
+
+def open_floor(circles=(), polygons=()):
+    return floors.Floor.from_primitives(circles, polygons, bounds=ROOM, max_circles=2, max_polygons=6)
+
+
+def walk(points, speeds, request_at_end=True, hold=3.0, yaw=None, name="walk"):
+    """A hand-made trajectory at 100 Hz through ``points`` at constant ``speeds`` (one per segment),
+    then standing ``hold`` s; the request fires at the end of the walk (or never if False)."""
+    xy = [np.asarray(points[0], float)]
+    for a, b, v in zip(points[:-1], points[1:], speeds, strict=True):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        n = max(1, round(float(np.linalg.norm(b - a)) / v * 100))
+        xy += list(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    walk_end = (len(xy) - 1) / 100
+    xy += [xy[-1]] * int(hold * 100)
+    xy = np.asarray(xy)
+    t = np.arange(len(xy)) / 100
+    if yaw is None:
+        d = np.asarray(points[-1], float) - np.asarray(points[0], float)
+        yaw = math.atan2(d[1], d[0])
+    q = quat_from_yaw_pitch(np.full(len(t), yaw), np.zeros(len(t)))
+    head = np.concatenate([xy, np.full((len(t), 1), 1.7), q], 1)
+    wrist = head.copy()
+    wrist[:, 2] -= 0.8
+    request = walk_end + 0.5 if request_at_end else t[-1] + 100.0
+    return Trajectory(name=name, time=t, head=head, wrist=wrist, request_time=min(request, t[-1]), start_ns=0)
+
+
+def run(method, trajs, floor, start, steps=None, cfg=E.EngineConfig()):
+    bank = MotionBank.from_trajectories(trajs)
+    engine = E.Engine(method, bank, floor, cfg)
+    schedule = E.Schedule(
+        users=jnp.arange(len(trajs), dtype=jnp.int32)[:, None],
+        start=jnp.asarray(np.repeat(np.asarray(start, np.float32)[None], len(trajs), 0)),
+        reset=jnp.arange(len(trajs)) == 0,
+    )
+    if steps is None:
+        return engine.run(schedule, jax.random.key(0), chunk=500), None
+    rec, res = engine.trace(schedule, jax.random.key(0), steps)
+    return {k: np.asarray(v) for k, v in res.items()}, rec
+
+
+# -- navigator ---------------------------------------------------------------------------------
+
+
+def test_distance_field_is_geodesic():
+    free = open_floor()
+    grid = nav.costmap(free)
+    field = np.asarray(nav.distance_field(grid, jnp.array([0.0, 0.0])))
+    value = float(grid.lookup(jnp.asarray(field), jnp.array([3.0, 0.0])))
+    assert value == pytest.approx(3.0, abs=0.15)  # open floor: the straight distance
+    diag = float(grid.lookup(jnp.asarray(field), jnp.array([2.0, 2.0])))
+    assert diag == pytest.approx(2 * math.sqrt(2), rel=0.02)
+    # a wall from y = -2 to 2 at x = 1.5: the way is round its end, clear of the inflation
+    wall = open_floor(polygons=[[(1.4, -2.0), (1.6, -2.0), (1.6, 2.0), (1.4, 2.0)]])
+    wgrid = nav.costmap(wall)
+    wfield = nav.distance_field(wgrid, jnp.array([0.0, 0.0]))
+    around = float(wgrid.lookup(wfield, jnp.array([3.0, 0.0])))
+    cfg = nav.NavigatorConfig()
+    shortest = 2 * math.hypot(1.5, 2.0 + cfg.lethal_radius)
+    assert shortest <= around < 1.25 * 2 * math.hypot(1.5, 2.0 + cfg.inflation_radius)
+    # a cell inside the wall is unreachable; the user keep-out disc is too
+    assert (
+        float(wfield[wgrid.cell(jnp.array([1.5, 0.0]))[0], wgrid.cell(jnp.array([1.5, 0.0]))[1]])
+        >= nav.UNREACHABLE
+    )
+    kfield = nav.distance_field(grid, jnp.array([0.0, 0.0]), jnp.array([[3.0, 0.0, 1.0]]))
+    c = grid.cell(jnp.array([3.0, 0.0]))
+    assert float(kfield[c[0], c[1]]) >= nav.UNREACHABLE
+
+
+def test_navigator_reaches_goal_round_a_wall():
+    wall = open_floor(polygons=[[(1.4, -3.0), (1.6, -3.0), (1.6, 3.0), (1.4, 3.0)]])
+    grid = nav.costmap(wall)
+    cfg = nav.NavigatorConfig()
+    from methd_jax import robot as robot_lib
+
+    robot = robot_lib.Robot()
+    goal = jnp.array([4.0, 0.0, 1.0])
+    field = nav.distance_field(grid, goal[:2])
+
+    def body(carry, _):
+        data, prev = carry
+        pose = robot_lib.pose(data)
+        world, local = nav.follow(grid, field, pose, prev, goal, cfg)
+        data = robot.step(data, local)
+        return (data, world), (pose, floors.signed_distance(wall, pose[:2]))
+
+    (_, _), (poses, sdf) = jax.jit(lambda d: jax.lax.scan(body, (d, jnp.zeros(3)), None, length=1500))(
+        robot.init(jnp.array([-2.0, 0.0, 0.0]))
+    )
+    done = np.asarray(jax.vmap(lambda p: nav.reached(p, goal, cfg))(poses))
+    assert done.any(), f"never reached; ended at {np.asarray(poses[-1])}"
+    assert np.min(np.asarray(sdf)) > 0.5  # kept the footprint off the wall
+    speed = np.linalg.norm(np.diff(np.asarray(poses)[:, :2], axis=0), axis=1) / 0.02
+    assert speed.max() <= cfg.max_speed + 0.05
+
+
+# -- behaviour engine ----------------------------------------------------------------------------
+
+
+def test_user_walking_at_the_robot_triggers_escape():
+    # the robot waits at the origin; the user walks straight at it from 6 m away
+    traj = walk([(-5.0, 0.0), (1.0, 0.0)], [1.0])
+    res, rec = run(M.Static(), [traj], open_floor(), (0.0, 0.0, 0.0), steps=600)
+    modes = rec["mode"]
+    assert (modes == E.ESCAPE).any()
+    assert res["escapes"][0] >= 1
+    first = np.argmax(modes == E.ESCAPE)
+    gap = np.linalg.norm(rec["users"][first, 0, :2] - rec["pose"][first, :2])
+    assert gap < 1.5 + 0.05  # it fired at the threshold, not before
+    # the robot moved away from the user: behind it along user -> robot (+x)
+    assert rec["pose"][first + 100, 0] > rec["pose"][first, 0] + 0.5
+    assert res["collisions_user"][0] == 0
+
+
+def test_escape_point_never_inside_an_obstacle():
+    # straight back from the user (+x) is a box; the escape point must avoid it
+    box = open_floor(polygons=[[(1.0, -0.6), (3.5, -0.6), (3.5, 0.6), (1.0, 0.6)]])
+    grid = nav.costmap(box)
+    cfg = E.EngineConfig()
+    pose = jnp.array([-0.2, 0.0, 0.0])
+    users = jnp.array([[-1.5, 0.0]])
+    goal, found = E.escape_point(pose, users, jnp.array([True]), box, grid, cfg)
+    assert bool(found)
+    assert bool(floors.is_free(box, goal[:2], 0.77))
+    assert abs(float(goal[1])) > 0.5  # turned aside
+    # on the lab floor, at random poses and users, a found escape point is always free and clear
+    lab = floors.lab()
+    lgrid = nav.costmap(lab)
+    key = jax.random.key(3)
+    poses = jax.random.uniform(key, (200, 3), minval=jnp.array([-5, -6, -3]), maxval=jnp.array([5, 6, 3]))
+    offs = jax.random.normal(jax.random.key(4), (200, 1, 2))
+    goals, ok = jax.vmap(lambda p, u: E.escape_point(p, p[:2] + u, jnp.array([True]), lab, lgrid, cfg))(
+        poses, offs
+    )
+    free = jax.vmap(lambda g: floors.is_free(lab, g[:2], 0.77))(goals)
+    assert np.asarray(ok).sum() > 50
+    assert np.all(np.asarray(free)[np.asarray(ok)])
+
+
+def test_blocked_robot_goes_to_inform_and_recovers():
+    # the robot sits in a dead-end corridor (walls left, right and behind); the user walks in
+    corridor = open_floor(
+        polygons=[
+            [(-1.0, 1.0), (4.0, 1.0), (4.0, 1.3), (-1.0, 1.3)],
+            [(-1.0, -1.3), (4.0, -1.3), (4.0, -1.0), (-1.0, -1.0)],
+            [(4.0, -1.3), (4.3, -1.3), (4.3, 1.3), (4.0, 1.3)],
+        ]
+    )
+    traj = walk([(-4.0, 0.0), (3.0, 0.0)], [0.8], hold=2.0)
+    res, rec = run(M.Static(), [traj], corridor, (2.6, 0.0, 0.0), steps=50 * 40)
+    modes, direction = rec["mode"], rec["direction"]
+    assert res["informs"][0] >= 1
+    inform = np.flatnonzero(modes == E.INFORM)
+    assert len(inform) > 0
+    assert (direction[inform] == 0).any() and (direction[inform] == -1).any()  # stopped, then walked back
+    waited = np.argmax(direction == -1) - inform[0]
+    assert waited == pytest.approx(50 * 10, abs=2)  # the 10 s wait
+    after = np.flatnonzero((modes != E.INFORM) & (np.arange(len(modes)) > inform[0]))
+    assert len(after) > 0, "never left Inform"
+    assert direction[after[0]] == 1  # the user walks on
+    assert res["collisions_user"][0] == 0 and res["collisions_obstacle"][0] == 0
+
+
+def test_metrics_of_a_hand_made_episode():
+    # the user walks 2 m east and stops facing east; the HIP is 2 m ahead, 0.3 m to the right.
+    traj = walk([(-3.0, 0.0), (-1.0, 0.0)], [1.0], hold=20.0, yaw=0.0)
+    bank = MotionBank.from_trajectories([traj])
+    req = int(bank.request_step[0])
+    hip = np.asarray(bank.hip[0, req])
+    start = np.array([hip[0], hip[1] + 4.0, hip[2]])  # 4 m north of the HIP, already turned
+    res, _ = run(M.Static(), [traj], open_floor(), start)
+    assert res["served"][0] == 1
+    assert res["request_time"][0] == pytest.approx(req / 50, abs=1e-4)
+    assert res["distance_to_hip"][0] == pytest.approx(4.0, abs=0.02)
+    # a straight drive of 4 m less the 0.2 m tolerance: no faster than cruising all the way (1.2
+    # m/s), no slower than a full trapezoid (1 m/s^2 up and down) plus the servos' lag
+    cfg = nav.NavigatorConfig()
+    drive = 4.0 - cfg.goal_tolerance
+    assert drive / cfg.max_speed < res["t_pos"][0] < 4.0 / cfg.max_speed + cfg.max_speed / cfg.max_accel + 0.5
+    # the path: straight to the tolerance circle, then braking on toward the HIP while the arm moves
+    assert drive <= res["travelled"][0] <= 4.0 + 0.25
+    assert res["escapes"][0] == 0 and res["informs"][0] == 0
+    assert res["duration"][0] == pytest.approx(req / 50 + res["t_pos"][0] + 3.3, abs=0.1)
+
+
+def test_summary_and_table():
+    r = {
+        "request_time": np.array([1.0, 2.0, np.nan]),
+        "t_pos": np.array([1.0, 3.0, np.nan]),
+        "distance_to_hip": np.array([0.5, 1.5, np.nan]),
+        "served": np.array([1.0, 1.0, 0.0]),
+        "escapes": np.array([2.0, 0.0, 1.0]),
+        "informs": np.zeros(3),
+        "collisions_obstacle": np.array([0.0, 1.0, 0.0]),
+        "collisions_user": np.zeros(3),
+        "travelled": np.array([10.0, 5.0, 1.0]),
+        "critical_time": np.array([0.5, 0.0, 0.0]),
+        "min_user_distance": np.array([2.0, 1.2, 3.0]),
+        "duration": np.array([5.0, 6.0, 7.0]),
+    }
+    s = metrics.summary(r)
+    assert s["t_pos"] == (2.0, 1.0)
+    assert s["served"] == 2 and s["requested"] == 2
+    assert s["travelled"] == 16.0 and s["escapes"] == 3 and s["collisions"] == 1
+    assert s["min_user_distance"] == 1.2
+    md = metrics.table_markdown({"SU Static": s})
+    assert "2.00 [1.00] | 4.84 [2.27]" in md and "2 (2) | 99 (100)" in md
+
+
+# -- statistics ------------------------------------------------------------------------------------
+
+
+def test_holm_matches_definition():
+    p = [0.01, 0.04, 0.03, 0.20]
+    # sorted: 0.01*4, 0.03*3, 0.04*2, 0.20*1 -> 0.04, 0.09, 0.08->0.09 (monotone), 0.20
+    assert stats.holm(p) == pytest.approx([0.04, 0.09, 0.09, 0.20])
+
+
+def test_friedman_kendall_w_and_wilcoxon_effect_size():
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=40)
+    consistent = {"a": base, "b": base + 1.0, "c": base + 2.0}  # the same ranking in every block
+    f = stats.friedman(consistent)
+    assert f["kendall_w"] == pytest.approx(1.0)
+    assert f["p"] < 1e-10
+    a = rng.normal(size=60)
+    b = a + 0.5 + rng.normal(size=60) * 0.3
+    w = stats.wilcoxon(a, b)
+    ref = st.wilcoxon(a, b, method="approx")
+    assert w["p"] == pytest.approx(ref.pvalue)
+    assert w["r"] == pytest.approx(w["z"] / math.sqrt(60))
+    # nan (unserved) episodes drop out of the pairs
+    b[:5] = np.nan
+    assert stats.wilcoxon(a, b)["n"] == 55
+
+
+# -- the whole SU baselines evaluation (the thesis's procedure on the synthetic test set) --------
+
+
+@pytest.fixture(scope="module")
+def test_bank():
+    _, test = motion.split(motion.synthesize(motion.dataset.DEFAULT_SIZE, 0))
+    return MotionBank.from_trajectories(test)
+
+
+def test_su_baselines_on_the_synthetic_test_set(test_bank):
+    from train.evaluate import evaluate
+
+    lab = floors.lab()
+    results = evaluate({"Static": M.Static(), "Heuristic": M.Heuristic()}, {}, test_bank, lab, progress=False)
+    s = {k: metrics.summary(v) for k, v in results.items()}
+    print(
+        {k: {m: s[k][m] for m in ("t_pos", "distance_to_hip", "served", "escapes", "travelled")} for k in s}
+    )
+    static, heuristic = s["SU Static"], s["SU Heuristic"]
+    assert static["requested"] == heuristic["requested"] == 100
+    assert heuristic["t_pos"][0] < static["t_pos"][0]
+    assert heuristic["distance_to_hip"][0] < static["distance_to_hip"][0]
+    assert static["escapes"] >= 20 and heuristic["escapes"] >= 20
+    assert static["served"] >= 80 and heuristic["served"] >= 80
+    assert heuristic["travelled"] > static["travelled"]
+
+
+# -- the command line ----------------------------------------------------------------------------
+
+
+def test_cli_baselines_and_a_trained_policy(tmp_path, capsys):
+    from conftest import TINY_RUN
+
+    from train import evaluate, run
+
+    run_dir = tmp_path / "su"
+    assert run.main(["quick", *TINY_RUN, "timesteps=8", "--out", str(run_dir), "--quiet"]) == 0
+    out = tmp_path / "eval"
+    code = evaluate.main(["--motion", "sample", "--su", str(run_dir), "--out", str(out), "--quiet"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "SU DRL (ours)" in text and "MU Static (ours)" in text
+    data = json.loads((out / "results.json").read_text())
+    assert set(data["summaries"]) == {"SU Static", "SU Heuristic", "SU DRL", "MU Static"}
+    assert data["summaries"]["SU DRL"]["requested"] == 4
+    assert len(data["episodes"]["SU DRL"]["t_pos"]) == 4
+    assert "friedman" in data["statistics"]["SU"]["t_pos"]
+    for name in ("table.md", "escapes.png", "travelled.png", "distance_to_hip.png", "t_pos.png"):
+        assert (out / name).stat().st_size > 1000, name
+    assert "SU DRL (thesis)" in (out / "table.md").read_text()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--trajectories", "0"], "--trajectories must be at least 1"),
+        (["--motion", "/nonexistent"], "not 'default', 'sample' or a folder"),
+        (["--floor", "/nonexistent.json"], "not found"),
+        (["--su", "/nonexistent"], "no exported policy"),
+        (["--mu", "/nonexistent", "--no-mu"], "contradict"),
+    ],
+)
+def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
+    from train import evaluate
+
+    code = evaluate.main(["--motion", "sample", "--quiet", "--out", str(tmp_path / "x"), *args])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err and len(err.strip().splitlines()) == 1

@@ -1,0 +1,268 @@
+"""``python -m train.evaluate``: the thesis's Table 5.1 for the baselines and trained policies.
+
+SU: Static, Heuristic and (with ``--su RUN``) the trained single-user policy, each through the
+held-out trajectories in sequence on the lab floor. MU: Static and (with ``--mu RUN``) NavRL with
+its GuideRL policy, one reset per trajectory pair. Prints Table 5.1 with the thesis's numbers
+beside ours and the statistics; writes ``table.md``, ``results.json`` (summaries, statistics and
+every episode's numbers) and the figures 5.3-5.6 as PNG into the output folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from envs.nav import NavConfig, NavEnv, load_bank
+from methd_jax import floors
+from methd_jax.evaluation import engine as eng
+from methd_jax.evaluation import methods, metrics, plots, stats
+from methd_jax.motion.dataset import progress_bar
+from methd_jax.motion.features import HipConfig
+from train import export
+from train.presets import ConfigError
+
+
+def load_policy(run: str | Path, bank, kind: str, guide: str | Path | None = None) -> methods.Policy:
+    """A trained policy from a run folder or an exported policy folder, as an evaluation method.
+
+    ``kind`` is "su" (a single-user policy) or "nav" (NavRL; its GuideRL policy comes from ``guide``
+    or from the run's own ``guide_run``)."""
+    try:
+        policy = export.load(run)
+    except (FileNotFoundError, ValueError) as err:
+        raise ConfigError(str(err)) from None
+    got = policy.manifest["env"]
+    if got != kind:
+        want = {"su": "--su takes a single-user (su) run", "nav": "--mu takes a NavRL (nav) run"}[kind]
+        raise ConfigError(f"{run} holds a {got!r} policy; {want}")
+    config = export.from_jsonable(NavConfig(), policy.manifest["env_config"])
+    guide_policy = None
+    if kind == "nav":
+        guide = guide or _run_guide(run)
+        if not guide:
+            raise ConfigError(
+                f"{run} was trained with the scripted goal source; pass its GuideRL run as --guide"
+            )
+        try:
+            guide_policy = export.load(guide)
+        except (FileNotFoundError, ValueError) as err:
+            raise ConfigError(str(err)) from None
+        if guide_policy.manifest["env"] != "guide":
+            raise ConfigError(f"--guide {guide} holds a {guide_policy.manifest['env']!r} policy, not GuideRL")
+    env = NavEnv(config, bank=bank, guide_policy=guide_policy)
+    return methods.Policy(env, policy, name="DRL")
+
+
+def _run_guide(run: str | Path) -> str:
+    meta = Path(run) / "config.json"
+    if not meta.exists():
+        return ""
+    for item in json.loads(meta.read_text()).get("overrides", []):
+        if item.startswith("guide_run="):
+            return item.split("=", 1)[1]
+    return ""
+
+
+def evaluate(
+    su: dict,
+    mu: dict,
+    bank,
+    floor,
+    *,
+    mu_offset: int = 50,
+    seed: int = 0,
+    config: eng.EngineConfig = eng.EngineConfig(),
+    progress: bool = True,
+) -> dict[str, dict[str, np.ndarray]]:
+    """Runs every method; ``su`` / ``mu`` map names to methods. Returns name -> per-episode results
+    (names prefixed "SU " / "MU ")."""
+    out = {}
+    key = jax.random.key(seed)
+    for scenario, chosen in (("SU", su), ("MU", mu)):
+        for name, method in chosen.items():
+            engine = eng.Engine(method, bank, floor, config)
+            starts = eng.start_poses(floor, engine.grid)
+            if scenario == "SU":
+                schedule = eng.su_schedule(bank, starts)
+            else:
+                schedule = eng.mu_schedule(bank, starts, mu_offset)
+            bar = progress_bar(f"{scenario} {name}", progress)
+            t0 = time.perf_counter()
+            out[f"{scenario} {name}"] = engine.run(schedule, key, progress=bar)
+            if progress:
+                print(f"{scenario} {name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return out
+
+
+def statistics(results: dict[str, dict[str, np.ndarray]]) -> dict:
+    """Friedman + Kendall's W (>= 3 methods) and Holm-corrected pairwise Wilcoxon, per scenario."""
+    out = {}
+    for scenario in ("SU", "MU"):
+        names = [n for n in results if n.startswith(scenario + " ")]
+        if len(names) < 2:
+            continue
+        block = {}
+        for key in ("t_pos", "distance_to_hip"):
+            samples = {n: results[n][key] for n in names}
+            entry = {"pairwise": stats.pairwise(samples)}
+            if len(names) >= 3:
+                entry["friedman"] = stats.friedman(samples)
+            block[key] = entry
+        out[scenario] = block
+    return out
+
+
+def _stats_text(st: dict) -> str:
+    lines = []
+    for scenario, block in st.items():
+        for key, entry in block.items():
+            if "friedman" in entry:
+                f = entry["friedman"]
+                lines.append(
+                    f"{scenario} {key}: Friedman chi2({f['df']}) = {f['chi2']:.1f}, p = {f['p']:.2g}, "
+                    f"Kendall's W = {f['kendall_w']:.3f} (N = {f['n']})"
+                )
+            for row in entry["pairwise"]:
+                lines.append(
+                    f"{scenario} {key}: {row['a']} vs {row['b']}: Z = {row['z']:.2f}, p(Holm) = "
+                    f"{row['p_holm']:.2g}, r = {row['r']:.2f} (N = {row['n']})"
+                )
+    return "\n".join(lines)
+
+
+def _json(value):
+    if isinstance(value, dict):
+        return {k: _json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return [_json(v) for v in value.tolist()]
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def write_report(results: dict, out: Path, meta: dict) -> tuple[str, dict]:
+    """``table.md``, ``results.json`` and the figures; returns the table and the statistics."""
+    out.mkdir(parents=True, exist_ok=True)
+    summaries = {name: metrics.summary(r) for name, r in results.items()}
+    table = metrics.table_markdown(summaries)
+    st = statistics(results)
+    stats_text = _stats_text(st)
+    figures = plots.figures(results, summaries, out)
+    text = ["# Table 5.1, reproduced", "", _meta_text(meta), "", table, ""]
+    if stats_text:
+        text += ["## Statistics", "", "```", stats_text, "```", ""]
+    text += ["Figures: " + ", ".join(f"[{p.name}]({p.name})" for p in figures), ""]
+    (out / "table.md").write_text("\n".join(text))
+    payload = {"meta": meta, "summaries": summaries, "statistics": st, "thesis": metrics.THESIS}
+    payload["episodes"] = results
+    (out / "results.json").write_text(json.dumps(_json(payload), indent=1) + "\n")
+    return table, st
+
+
+def _meta_text(meta: dict) -> str:
+    return (
+        f"{meta['trajectories']} test trajectories from `{meta['motion']}` on floor `{meta['floor']}`; "
+        f"MU pairs offset by {meta['mu_offset']}; seed {meta['seed']}; {meta['date']}."
+    )
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def main(argv=None) -> int:
+    parser = _OneLineParser(
+        prog="python -m train.evaluate",
+        description="Table 5.1 of the thesis: baselines and trained policies through the behaviour engine.",
+    )
+    parser.add_argument(
+        "--su", metavar="RUN", help="a single-user run (or exported policy) to evaluate as SU DRL"
+    )
+    parser.add_argument("--mu", metavar="RUN", help="a NavRL run (or exported policy) to evaluate as MU DRL")
+    parser.add_argument(
+        "--guide", metavar="RUN", help="the GuideRL run for --mu (default: the run's guide_run)"
+    )
+    parser.add_argument(
+        "--motion",
+        default="default",
+        help="trajectories: default (its 100 test ones), sample, or a folder of MCAP bags",
+    )
+    parser.add_argument(
+        "--floor", default="lab", help="lab (the lab twin) or a floor JSON in the lab's format"
+    )
+    parser.add_argument("--trajectories", type=int, help="use only the first N test trajectories")
+    parser.add_argument(
+        "--mu-offset", type=int, default=50, help="user 2's trajectory index offset (default 50)"
+    )
+    parser.add_argument("--no-mu", action="store_true", help="skip the multi-user scenario")
+    parser.add_argument("--no-heuristic", action="store_true", help="skip the Heuristic baseline")
+    parser.add_argument("--seed", type=int, default=0, help="key for the LiDAR noise of DRL policies")
+    parser.add_argument("--out", type=Path, help="output folder (default runs/eval-<date>-<time>)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    args = parser.parse_args(argv)
+    try:
+        if args.trajectories is not None and args.trajectories < 1:
+            raise ConfigError(f"--trajectories must be at least 1, got {args.trajectories}")
+        if args.motion not in ("default", "sample") and not Path(args.motion).is_dir():
+            raise ConfigError(f"--motion {args.motion}: not 'default', 'sample' or a folder")
+        try:
+            floor = floors.lab() if args.floor == "lab" else floors.lab(args.floor)
+        except floors.FloorSpecError as err:
+            raise ConfigError(str(err)) from None
+        bank = load_bank(args.motion, "test", HipConfig())
+        if args.trajectories is not None:
+            bank = bank.take(range(min(args.trajectories, bank.num_trajectories)))
+        su = {"Static": methods.Static()}
+        if not args.no_heuristic:
+            su["Heuristic"] = methods.Heuristic()
+        mu = {} if args.no_mu else {"Static": methods.Static()}
+        if args.su:
+            su["DRL"] = load_policy(args.su, bank, "su")
+        if args.mu:
+            if args.no_mu:
+                raise ConfigError("--mu and --no-mu contradict each other")
+            mu["DRL"] = load_policy(args.mu, bank, "nav", args.guide)
+        if mu and bank.num_trajectories < 2:
+            raise ConfigError("the multi-user scenario needs at least 2 trajectories (or pass --no-mu)")
+        offset = args.mu_offset % bank.num_trajectories if mu else args.mu_offset
+        if mu and offset == 0:
+            offset = max(1, bank.num_trajectories // 2)
+        out = args.out or Path("runs") / f"eval-{time.strftime('%Y%m%d-%H%M%S')}"
+        meta = {
+            "motion": args.motion,
+            "floor": args.floor,
+            "trajectories": bank.num_trajectories,
+            "mu_offset": offset,
+            "seed": args.seed,
+            "su_run": args.su,
+            "mu_run": args.mu,
+            "date": time.strftime("%Y-%m-%d %H:%M"),
+        }
+        results = evaluate(su, mu, bank, floor, mu_offset=offset, seed=args.seed, progress=not args.quiet)
+    except (ConfigError, FileNotFoundError) as err:
+        print(f"python -m train.evaluate: error: {err}", file=sys.stderr)
+        return 2
+    table, st = write_report(results, out, meta)
+    print(_meta_text(meta))
+    print(table)
+    text = _stats_text(st)
+    if text:
+        print(text)
+    print(f"wrote {out / 'table.md'}, {out / 'results.json'} and figures")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
