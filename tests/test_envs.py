@@ -79,7 +79,7 @@ def _state_with_robot_at(env, key, pose):
         def observe(key, pose):
             w = env.reset(key).pipeline_state
             w = w.replace(robot=env.robot.init(pose))
-            return (w, *env._observe(w, jnp.zeros(3), key))
+            return (w, *env.observe(w, jnp.zeros(3), key))
 
         _OBSERVERS[id(env)] = observe
     return _OBSERVERS[id(env)](key, jnp.asarray(pose, jnp.float32))
