@@ -261,16 +261,18 @@ def test_friedman_kendall_w_and_wilcoxon_effect_size():
 
 
 @pytest.fixture(scope="module")
-def test_bank():
+def synthetic_test_bank():
     _, test = motion.split(motion.synthesize(motion.dataset.DEFAULT_SIZE, 0))
     return MotionBank.from_trajectories(test)
 
 
-def test_su_baselines_on_the_synthetic_test_set(test_bank):
+def test_su_baselines_on_the_synthetic_test_set(synthetic_test_bank):
     from train.evaluate import evaluate
 
     lab = floors.lab()
-    results = evaluate({"Static": M.Static(), "Heuristic": M.Heuristic()}, {}, test_bank, lab, progress=False)
+    results = evaluate(
+        {"Static": M.Static(), "Heuristic": M.Heuristic()}, {}, synthetic_test_bank, lab, progress=False
+    )
     s = {k: metrics.summary(v) for k, v in results.items()}
     print(
         {k: {m: s[k][m] for m in ("t_pos", "distance_to_hip", "served", "escapes", "travelled")} for k in s}

@@ -9,7 +9,6 @@ every episode's numbers) and the figures 5.3-5.6 as PNG into the output folder.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -27,6 +26,7 @@ from methd_jax.motion.dataset import progress_bar
 from methd_jax.motion.features import HipConfig
 from train import export
 from train.presets import ConfigError
+from train.run import _OneLineParser
 
 
 def load_policy(run: str | Path, bank, kind: str, guide: str | Path | None = None) -> methods.Policy:
@@ -175,11 +175,6 @@ def _meta_text(meta: dict) -> str:
         f"{meta['trajectories']} test trajectories from `{meta['motion']}` on floor `{meta['floor']}`; "
         f"MU pairs offset by {meta['mu_offset']}; seed {meta['seed']}; {meta['date']}."
     )
-
-
-class _OneLineParser(argparse.ArgumentParser):
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def main(argv=None) -> int:

@@ -160,14 +160,7 @@ def start_poses(floor: Floor, grid: nav.Costmap, margin: float = 0.5) -> np.ndar
     floor's quadrants with ``margin`` beyond the footprint's radius, yaw 0. (4, 3) numpy."""
     b = np.asarray(floor.bounds)
     centres = np.asarray(grid.centres()).reshape(-1, 2)
-    sdf = np.asarray(jax.vmap(lambda p: floors.signed_distance(floor, p))(jnp.asarray(centres)))
-    inside = (
-        (centres[:, 0] - b[0] > KAIROS.radius + margin)
-        & (b[2] - centres[:, 0] > KAIROS.radius + margin)
-        & (centres[:, 1] - b[1] > KAIROS.radius + margin)
-        & (b[3] - centres[:, 1] > KAIROS.radius + margin)
-    )
-    ok = (sdf >= KAIROS.radius + margin) & inside
+    ok = np.asarray(grid.clearance).reshape(-1) >= KAIROS.radius + margin  # obstacles and walls
     if not ok.any():
         raise ValueError("the floor has no room for the robot: no free start pose")
     cx, cy = 0.5 * (b[0] + b[2]), 0.5 * (b[1] + b[3])
@@ -373,7 +366,11 @@ class Engine:
         # Escape trigger (Chase, Haptic) and Inform's retries
         trigger = ((mode == CHASE) | (mode == HAPTIC)) & (closest < cfg.escape_distance)
         retry = (mode == INFORM) & (mode_t > 0) & (mode_t % cfg.steps(cfg.inform_retry) == 0)
-        goal_e, found = escape_point(pose, users_xy, present, self.floor, self.grid, cfg)
+        goal_e, found = jax.lax.cond(  # 27 candidates' free-space tests, only when needed
+            trigger | retry,
+            lambda: escape_point(pose, users_xy, present, self.floor, self.grid, cfg),
+            lambda: (s.escape_goal, jnp.bool_(False)),
+        )
         resume = jnp.where(trigger, mode, resume)
         to_escape = (trigger | retry) & found
         to_inform = trigger & ~found
