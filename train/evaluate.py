@@ -20,13 +20,13 @@ import numpy as np
 
 from envs.nav import NavConfig, NavEnv, load_bank
 from methd_jax import floors
+from methd_jax.cli import OneLineParser
 from methd_jax.evaluation import engine as eng
 from methd_jax.evaluation import methods, metrics, plots, stats
 from methd_jax.motion.dataset import progress_bar
 from methd_jax.motion.features import HipConfig
 from train import export
 from train.presets import ConfigError
-from train.run import _OneLineParser
 
 
 def load_policy(run: str | Path, bank, kind: str, guide: str | Path | None = None) -> methods.Policy:
@@ -178,7 +178,7 @@ def _meta_text(meta: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = _OneLineParser(
+    parser = OneLineParser(
         prog="python -m train.evaluate",
         description="Table 5.1 of the thesis: baselines and trained policies through the behaviour engine.",
     )

@@ -23,6 +23,7 @@ import numpy as np
 import networks
 from envs.guide import GuideEnv
 from envs.nav import NavEnv
+from methd_jax.cli import OneLineParser
 from train import export
 from train.checkpoint import Checkpoints
 from train.ppo import Trainer
@@ -308,11 +309,6 @@ def _help_epilog() -> str:
     return "\n".join(lines)
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def load_config(run_dir: str | Path) -> tuple[str, list[str], RunConfig]:
     """The preset, overrides and configuration of the run in ``run_dir``."""
     meta_path = Path(run_dir) / "config.json"
@@ -323,7 +319,7 @@ def load_config(run_dir: str | Path) -> tuple[str, list[str], RunConfig]:
 
 
 def main(argv=None) -> int:
-    parser = _OneLineParser(
+    parser = OneLineParser(
         prog="python -m train.run",
         description="Train the thesis's policies with PPO and write a run folder.",
         epilog=_help_epilog(),

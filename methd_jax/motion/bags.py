@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from methd_jax import ros_messages
 from methd_jax.motion.trajectory import (
     RATE_HZ,
     MotionDataError,
@@ -26,21 +27,8 @@ TOPICS = ("/head", "/wrist", "/haptic_request")
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 FRAME_ID = "world"
 
-_SEP = "=" * 80 + "\n"
-POSE_STAMPED_MSGDEF = (
-    "std_msgs/Header header\ngeometry_msgs/Pose pose\n"
-    + _SEP
-    + "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
-    + _SEP
-    + "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
-    + _SEP
-    + "MSG: geometry_msgs/Pose\nPoint position\nQuaternion orientation\n"
-    + _SEP
-    + "MSG: geometry_msgs/Point\nfloat64 x\nfloat64 y\nfloat64 z\n"
-    + _SEP
-    + "MSG: geometry_msgs/Quaternion\nfloat64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n"
-)
-BOOL_MSGDEF = "bool data\n"
+POSE_STAMPED_MSGDEF = ros_messages.POSE_STAMPED
+BOOL_MSGDEF = ros_messages.BOOL
 
 
 # ----------------------------------------------------------------------------------------------
@@ -49,7 +37,7 @@ BOOL_MSGDEF = "bool data\n"
 
 def _pose_msg(stamp_ns: int, pose: np.ndarray) -> dict:
     return {
-        "header": {"stamp": {"sec": stamp_ns // 10**9, "nanosec": stamp_ns % 10**9}, "frame_id": FRAME_ID},
+        "header": ros_messages.header(stamp_ns, FRAME_ID),
         "pose": {
             "position": {"x": float(pose[0]), "y": float(pose[1]), "z": float(pose[2])},
             "orientation": {
@@ -190,10 +178,6 @@ def _pose_values(msg) -> list[float]:
     return [p.x, p.y, p.z, q.x, q.y, q.z, q.w]
 
 
-def _stamp(msg) -> int:
-    return int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
-
-
 def read_bag(path: str | Path) -> Trajectory:
     """Reads one trajectory from an MCAP file (ROS 2, cdr); errors name the file and the problem."""
     from mcap.exceptions import EndOfFile, InvalidMagic, McapError
@@ -217,7 +201,7 @@ def read_bag(path: str | Path) -> Trajectory:
                     t.stamps.append(message.log_time)
                 else:
                     t.values.append(_pose_values(msg))
-                    t.stamps.append(_stamp(msg))
+                    t.stamps.append(ros_messages.stamp_ns(msg))
                 t.log.append(message.log_time)
     except FileNotFoundError:
         raise MotionDataError(f"{path}: no such file") from None
@@ -282,7 +266,7 @@ def read_ros1_bag(path: str | Path) -> Trajectory:
                     t.stamps.append(int(log_ns))
                 else:
                     t.values.append(_pose_values(msg))
-                    t.stamps.append(_stamp(msg))
+                    t.stamps.append(ros_messages.stamp_ns(msg))
                 t.log.append(int(log_ns))
     except FileNotFoundError:
         raise MotionDataError(f"{path}: no such file") from None
