@@ -1,5 +1,13 @@
 """Exported policies: what a trained run hands to evaluation and deployment.
 
+Every run writes ``policy/``; ``python -m train.export RUN`` turns it into a self-contained
+deployment folder (``RUN/deploy`` by default) that :class:`methd_jax.deploy.Controller` loads
+without JAX: ``policy.onnx`` (the deterministic policy with the observation normaliser folded in,
+exported by jax2onnx), ``params.npz`` and a ``manifest.json`` extended with a ``deployment``
+section (observation fields with units, action scaling, interpolation weights, dead zones, LiDAR
+clamp, control rate, footprint and distances), the run's configuration, the library versions and
+a SHA-256 of the parameters.
+
 A policy folder holds ``params.npz`` (every network parameter under its Flax path, e.g.
 ``params/body0/kernel``, plus ``obs_mean`` and ``obs_std``, all float32, readable with numpy alone)
 and ``manifest.json``: the environment and its options, the observation layout (name -> [start,
@@ -10,7 +18,14 @@ observation clip, and where and when it was trained. :func:`load` gives a determ
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import importlib.metadata
 import json
+import logging
+import math
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -19,6 +34,9 @@ import numpy as np
 from flax import traverse_util
 
 import networks
+from methd_jax.cli import OneLineParser
+from methd_jax.geometry import KAIROS
+from methd_jax.motion.features import CONTROL_HZ
 
 FORMAT = "methd-jax-policy/1"
 
@@ -125,3 +143,213 @@ def load(path: str | Path) -> Policy:
     mean, std = arrays.pop("obs_mean"), arrays.pop("obs_std")
     params = traverse_util.unflatten_dict({tuple(k.split("/")): jnp.asarray(v) for k, v in arrays.items()})
     return Policy(manifest, params, jnp.asarray(mean), jnp.asarray(std))
+
+
+# ----------------------------------------------------------------------------------------------
+# Deployment folders
+
+
+class ExportError(ValueError):
+    """A run or policy folder that cannot be exported (the message says why)."""
+
+
+_FIELDS = {
+    "lidar": None,  # per ray, filled in below
+    "robot_velocity": (["vx", "vy", "wz"], ["m/s", "m/s", "rad/s"]),
+    "robot_acceleration": (["ax", "ay", "alpha_z"], ["m/s^2", "m/s^2", "rad/s^2"]),
+    "previous_action": (["a_vx", "a_vy", "a_wz"], ["1", "1", "1"]),
+    "previous_action_2": (["a_vx", "a_vy", "a_wz"], ["1", "1", "1"]),
+    "user": (
+        ["p_x", "p_y", "v_x", "v_y", "w_z", "phi", "theta", "d"],
+        ["m", "m", "m/s", "m/s", "rad/s", "rad", "rad", "m"],
+    ),
+    "goal": (["p_x", "p_y", "d", "theta", "dyaw"], ["m", "m", "m", "rad", "rad"]),
+    "guide": (
+        [f"{q}_u{i}_{c}" for q in ("v", "q") for i in (1, 2) for c in ("x", "y", "wz")]
+        + ["u_w", "a_prev", "a_prev_2"],
+        ["m/s"] * 2
+        + ["rad/s"]
+        + ["m/s"] * 2
+        + ["rad/s"]
+        + ["m/s^2"] * 2
+        + ["rad/s^2"]
+        + ["m/s^2"] * 2
+        + ["rad/s^2", "1", "1", "1"],
+    ),
+}
+
+
+def observation_fields(manifest: dict) -> list[dict]:
+    """Every slice of the observation with its components' names and units, in order."""
+    out = []
+    for name, (start, stop) in manifest["observation_layout"].items():
+        if name == "lidar":
+            names, units = ["range"], ["m"]
+        else:
+            names, units = _FIELDS["user" if name.startswith("user") else name]
+        if name != "lidar" and len(names) != stop - start:
+            raise ExportError(f"observation field {name!r} has {stop - start} values, expected {len(names)}")
+        out.append({"name": name, "start": start, "stop": stop, "components": names, "units": units})
+    return out
+
+
+def deployment_section(manifest: dict) -> dict:
+    """What a controller outside JAX needs to build observations and commands as training did."""
+    env = manifest["env_config"]
+    section = {
+        "control_hz": CONTROL_HZ,
+        "observation": observation_fields(manifest),
+        "observation_normaliser": "folded into policy.onnx; obs_mean/obs_std in params.npz",
+        "observation_clip": manifest["observation_clip"],
+    }
+    if manifest["env"] == "guide":
+        return section
+    robot, safety = env["robot"], env["safety"]
+    num_rays = env["num_rays"]
+    return {
+        **section,
+        "num_users": env["num_users"],
+        "lidar": {
+            "num_rays": num_rays,
+            "angle_min": 0.0,
+            "angle_increment": 2 * math.pi / num_rays,
+            "direction": "counter-clockwise from the robot's +x axis",
+            "max_range": env["lidar_range"],
+        },
+        "action": {
+            "scale": [robot["max_speed"], robot["max_speed"], robot["max_yaw_rate"]],
+            "interpolation_weights": list(env["action_weights"]),
+            "deadzone_linear": env["deadzone_linear"],
+            "deadzone_angular": env["deadzone_angular"],
+            "frame": "robot",
+        },
+        "goal": {
+            "tolerance": env["goal_tolerance"],
+            "deadzone": env["goal_deadzone"],
+            "yaw_deadzone": env["goal_yaw_deadzone"],
+        },
+        "footprint": {"length": KAIROS.length, "width": KAIROS.width, "radius": KAIROS.radius},
+        "collision_distance": safety["collision_distance"],
+        "critical_distance": safety["critical_distance"],
+        "encoder_strides": list(networks.actor_critic.ENCODER_STRIDES),
+    }
+
+
+def params_sha256(params_npz: str | Path) -> str:
+    """SHA-256 over the arrays of a ``params.npz`` (names sorted, raw float32 bytes): stable across
+    rewrites of the zip file."""
+    digest = hashlib.sha256()
+    with np.load(params_npz) as data:
+        for k in sorted(data.files):
+            digest.update(k.encode() + b"\0" + np.ascontiguousarray(data[k], np.float32).tobytes())
+    return digest.hexdigest()
+
+
+def versions() -> dict:
+    out = {"python": sys.version.split()[0]}
+    for dist in ("methd-jax", "jax", "flax", "numpy", "jax2onnx", "onnx", "onnxruntime"):
+        try:
+            out[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            out[dist] = None
+    return out
+
+
+def _convert(policy_dir: str, path: str) -> None:
+    """The conversion itself (run in a child process by :func:`to_onnx`)."""
+    import onnx
+    from jax2onnx import to_onnx as convert  # heavy import: only when exporting
+
+    policy = load(policy_dir)
+    # onnx_ir warns about untyped shape constants of broadcasts; the model checks and runs fine
+    logging.getLogger("onnx_ir").setLevel(logging.ERROR)
+    model = convert(
+        policy,
+        [("B", policy.manifest["observation_size"])],
+        model_name=f"methd_jax_{policy.manifest['env']}_policy",
+        input_names=["observation"],
+        output_names=["action"],
+    )
+    onnx.checker.check_model(model)
+    Path(path).write_bytes(model.SerializeToString())
+
+
+def to_onnx(policy_dir: str | Path, path: str | Path) -> Path:
+    """Writes the deterministic policy of ``policy_dir`` (normalise, clip, network mean, clip to
+    [-1, 1]) as ONNX with a dynamic batch axis: input ``observation`` (B, D) float32, output
+    ``action`` (B, A).
+
+    The conversion runs in a child process: jax2onnx (0.17.1) leaves its patches of ``jax.numpy``
+    in place after converting (``jnp.cumsum`` stays replaced by a wrapper that rejects an axis
+    argument), which would break JAX code run afterwards in the same process.
+    """
+    path = Path(path)
+    code = "import sys; from train.export import _convert; _convert(sys.argv[1], sys.argv[2])"
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run(
+        [sys.executable, "-c", code, str(Path(policy_dir).resolve()), str(path.resolve())],
+        capture_output=True,
+        text=True,
+        cwd=root,
+    )
+    if r.returncode != 0 or not path.exists():
+        lines = [x for x in r.stderr.strip().splitlines() if x.strip()]
+        raise ExportError(f"ONNX conversion failed: {lines[-1] if lines else f'exit status {r.returncode}'}")
+    return path
+
+
+def export_deployment(source: str | Path, out: str | Path | None = None, *, log=print) -> Path:
+    """The deployment folder for the run or policy folder ``source`` (default ``<run>/deploy``)."""
+    source = Path(source)
+    if not source.exists():
+        raise ExportError(f"{source}: no such run or policy folder")
+    policy_dir = source / "policy" if (source / "policy" / "manifest.json").exists() else source
+    try:
+        policy = load(policy_dir)
+    except (FileNotFoundError, ValueError) as e:
+        raise ExportError(str(e)) from None
+    run_dir = policy_dir.parent if policy_dir.name == "policy" else None
+    out = Path(out) if out is not None else (run_dir or policy_dir) / "deploy"
+    if out.resolve() == policy_dir.resolve():
+        raise ExportError(f"--out {out} is the policy folder itself; choose another folder")
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(policy_dir / "params.npz", out / "params.npz")
+    log(f"exporting {policy.manifest['env']} policy from {policy_dir} to ONNX ...")
+    to_onnx(policy_dir, out / "policy.onnx")
+    manifest = dict(policy.manifest)
+    run_config = None
+    if run_dir is not None and (run_dir / "config.json").exists():
+        run_config = json.loads((run_dir / "config.json").read_text())
+    manifest.update(
+        deployment=deployment_section(policy.manifest),
+        onnx={"file": "policy.onnx", "input": "observation", "output": "action", "batch": "dynamic"},
+        run_config=run_config,
+        versions=versions(),
+        params_sha256=params_sha256(out / "params.npz"),
+    )
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    log(
+        f"wrote {out} (policy.onnx, params.npz, manifest.json; "
+        f"params sha256 {manifest['params_sha256'][:12]})"
+    )
+    return out
+
+
+def main(argv=None) -> int:
+    parser = OneLineParser(
+        prog="python -m train.export",
+        description="Export a trained policy to a self-contained deployment folder (ONNX + manifest) "
+        "that methd_jax.deploy.Controller loads with numpy and onnxruntime only.",
+    )
+    parser.add_argument("source", help="a run folder (runs/<name>) or its policy/ folder")
+    parser.add_argument("--out", help="deployment folder to write (default: <run>/deploy)")
+    args = parser.parse_args(argv)
+    try:
+        export_deployment(args.source, args.out)
+    except ExportError as e:
+        parser.exit(1, f"{parser.prog}: error: {e}\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,220 @@
+"""The deployed controller: one 50 Hz tick of robot inputs -> a safe velocity command.
+
+``Controller.tick`` never raises: a watchdog turns stale, missing or invalid inputs into a zero
+command with a counted reason, and the safety layer (:mod:`methd_jax.deploy.safety`) scales the
+policy's command so the footprint stays clear of the scan and the users over a short horizon.
+Every intervention is counted in ``Controller.interventions``.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from methd_jax.deploy import observation
+from methd_jax.deploy.policy import DeployError, NumpyPolicy, OnnxPolicy, load_manifest
+from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
+
+
+@dataclasses.dataclass
+class Inputs:
+    """One tick of inputs, world frame unless said otherwise; stamps in seconds on the clock that
+    ``Controller.tick(now=...)`` uses (None: not checked for age).
+
+    ``ranges`` (num_rays,) LiDAR ranges in the robot frame, ray i at 2*pi*i/num_rays counter-clockwise
+    from +x (inf or above range: no return); ``robot_pose`` (x, y, yaw); ``velocity`` (vx, vy, wz) in
+    the robot frame; ``acceleration`` likewise, or None to difference successive velocities;
+    ``users`` (N, 6) x, y, yaw, vx, vy, wz; ``goal`` (x, y, yaw).
+    """
+
+    ranges: np.ndarray | None
+    robot_pose: np.ndarray | None
+    velocity: np.ndarray | None
+    users: np.ndarray | None
+    goal: np.ndarray | None
+    acceleration: np.ndarray | None = None
+    scan_stamp: float | None = None
+    odom_stamp: float | None = None
+    users_stamp: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Command:
+    """A tick's result: ``twist`` (vx, vy, wz) to send, robot frame; ``policy`` the command before the
+    safety layer (zero when the watchdog stopped the robot); ``reason`` why it differs (None if not)."""
+
+    twist: np.ndarray
+    policy: np.ndarray
+    reason: str | None
+
+
+@dataclasses.dataclass(frozen=True)
+class WatchdogConfig:
+    max_age: float = 0.2
+    """Inputs older than this (s) stop the robot (a 10 Hz LiDAR is 0.1 s old at worst)."""
+
+
+class Controller:
+    """Loads a deployment folder (``python -m train.export``) with numpy and onnxruntime only."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        backend: str = "onnx",
+        safety: SafetyConfig = SafetyConfig(),
+        watchdog: WatchdogConfig = WatchdogConfig(),
+    ):
+        self.manifest = load_manifest(path)
+        if self.manifest["env"] not in ("su", "nav"):
+            raise DeployError(
+                f"{path}: a {self.manifest['env']!r} policy does not drive the base; the controller runs "
+                "'su' or 'nav' policies (a GuideRL policy sets the goal of a 'nav' policy)"
+            )
+        if backend == "onnx":
+            self.policy = OnnxPolicy(self.manifest)
+        elif backend == "numpy":
+            self.policy = NumpyPolicy(self.manifest)
+        else:
+            raise DeployError(f"unknown backend {backend!r}; use 'onnx' or 'numpy'")
+        self.deployment = d = self.manifest["deployment"]
+        self.num_rays = d["lidar"]["num_rays"]
+        self.num_users = d["num_users"]
+        self.dt = 1.0 / d["control_hz"]
+        self.watchdog = watchdog
+        fp = d["footprint"]
+        self.monitor = CollisionMonitor(
+            fp["length"], fp["width"], self.num_rays, d["collision_distance"], safety
+        )
+        self.interventions: collections.Counter[str] = collections.Counter()
+        self.ticks = 0
+        self.reset()
+
+    def reset(self):
+        """Forget the action history and the last velocity (as at an episode's start)."""
+        self.actions = np.zeros((2, 3))
+        self.last_velocity = np.zeros(3)
+
+    # -- the watchdog --------------------------------------------------------------------------
+
+    def _check(self, x: Inputs, now: float | None) -> str | None:
+        shapes = {
+            "ranges": (self.num_rays,),
+            "robot_pose": (3,),
+            "velocity": (3,),
+            "users": (self.num_users, 6),
+            "goal": (3,),
+        }
+        if x.acceleration is not None:
+            shapes["acceleration"] = (3,)
+        for name, shape in shapes.items():
+            value = getattr(x, name)
+            if value is None:
+                return f"missing_{name}"
+            try:
+                value = np.asarray(value, np.float64)
+            except (TypeError, ValueError):
+                return f"invalid_{name}"
+            if value.size == 0:
+                return f"empty_{name}"
+            if value.shape != shape:
+                return f"shape_{name}"
+            if name == "ranges":
+                if np.isnan(value).any():
+                    return "nan_ranges"
+                if (value < 0).any():
+                    return "negative_ranges"
+            elif not np.isfinite(value).all():
+                return f"nan_{name}"
+        if now is not None:
+            for name in ("scan", "odom", "users"):
+                stamp = getattr(x, f"{name}_stamp")
+                if stamp is not None and not (now - stamp <= self.watchdog.max_age):
+                    return f"stale_{name}"
+        return None
+
+    # -- one tick ------------------------------------------------------------------------------
+
+    def tick(self, x: Inputs, now: float | None = None) -> Command:
+        """The command for this tick (never raises; see ``interventions`` for what was stopped)."""
+        self.ticks += 1
+        try:
+            problem = self._check(x, now)
+            if problem is not None:
+                return self._stop(f"watchdog:{problem}")
+            velocity = np.asarray(x.velocity, np.float64)
+            accel = (
+                np.asarray(x.acceleration, np.float64)
+                if x.acceleration is not None
+                else (velocity - self.last_velocity) / self.dt
+            )
+            obs = observation.observe(
+                self.deployment,
+                ranges=np.asarray(x.ranges, np.float64),
+                robot_pose=np.asarray(x.robot_pose, np.float64),
+                velocity=velocity,
+                acceleration=accel,
+                actions=self.actions,
+                users=np.asarray(x.users, np.float64),
+                goal=np.asarray(x.goal, np.float64),
+            )
+            action = np.asarray(self.policy(obs), np.float64)
+            if not np.isfinite(action).all():
+                return self._stop("watchdog:nan_action")
+            cmd = observation.command(self.deployment, action, self.actions)
+            self.actions = np.stack([action, self.actions[0]])
+            self.last_velocity = velocity
+            pose = np.asarray(x.robot_pose, np.float64)
+            users = np.asarray(x.users, np.float64)
+            local = observation.to_local(pose, users[:, :2])
+            local_vel = observation.rotate(-pose[2], users[:, 3:5])
+            safe, reason = self.monitor(cmd, np.asarray(x.ranges, np.float64), local, local_vel)
+            if reason is not None:
+                self.interventions[f"safety:{reason}"] += 1
+                reason = f"safety:{reason}"
+            return Command(safe, cmd, reason)
+        except Exception as e:  # the 50 Hz loop must go on; the reason names what went wrong
+            return self._stop(f"error:{type(e).__name__}")
+
+    def _stop(self, reason: str) -> Command:
+        self.interventions[reason] += 1
+        self.reset()
+        zero = np.zeros(3)
+        return Command(zero, zero, reason)
+
+
+def latency(controller: Controller, ticks: int = 2000, seed: int = 0) -> dict:
+    """Median, p99 and max wall time of ``tick`` in ms on random inputs (safety layer included)."""
+    rng = np.random.default_rng(seed)
+    n, u = controller.num_rays, controller.num_users
+    times = []
+    for _ in range(ticks + 50):
+        x = Inputs(
+            ranges=rng.uniform(0.5, 6.0, n),
+            robot_pose=rng.uniform(-3, 3, 3),
+            velocity=rng.uniform(-1, 1, 3),
+            users=np.concatenate(
+                [
+                    rng.uniform(-4, 4, (u, 2)),
+                    rng.uniform(-math.pi, math.pi, (u, 1)),
+                    rng.uniform(-1, 1, (u, 3)),
+                ],
+                1,
+            ),
+            goal=rng.uniform(-3, 3, 3),
+        )
+        t0 = time.perf_counter()
+        controller.tick(x)
+        times.append(time.perf_counter() - t0)
+    ms = 1e3 * np.asarray(times[50:])
+    return {
+        "ticks": ticks,
+        "median_ms": float(np.median(ms)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "max_ms": float(ms.max()),
+    }

@@ -1,0 +1,128 @@
+"""Exported policies outside JAX: the ONNX model under onnxruntime, or the same network in numpy.
+
+Both take raw observations ``(D,)`` or ``(B, D)`` and return the deterministic action in [-1, 1]
+(normaliser, observation clip and network as in training; see ``train.export``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = "methd-jax-policy/1"
+
+
+class DeployError(ValueError):
+    """A deployment folder or input that cannot be used (the message says why)."""
+
+
+def load_manifest(path: str | Path) -> dict:
+    """The manifest of a deployment folder written by ``python -m train.export``."""
+    path = Path(path)
+    if (path / "deploy" / "manifest.json").exists():
+        path = path / "deploy"
+    file = path / "manifest.json"
+    if not file.exists():
+        raise DeployError(f"{path} holds no exported policy (manifest.json is missing)")
+    manifest = json.loads(file.read_text())
+    if manifest.get("format") != FORMAT:
+        raise DeployError(f"{file}: unknown policy format {manifest.get('format')!r}, expected {FORMAT!r}")
+    if "deployment" not in manifest:
+        raise DeployError(
+            f"{path} is a training export without a deployment section; run `python -m train.export "
+            f"{path.parent if path.name == 'policy' else path}` first"
+        )
+    manifest["_dir"] = str(path)
+    return manifest
+
+
+def elu(x: np.ndarray) -> np.ndarray:
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0.0)))
+
+
+def conv1d(x: np.ndarray, kernel: np.ndarray, stride: int) -> np.ndarray:
+    """Valid 1D convolution ``(B, L, Cin) x (k, Cin, Cout) -> (B, L', Cout)`` (Flax's layout)."""
+    k = kernel.shape[0]
+    n = (x.shape[1] - k) // stride + 1
+    index = np.arange(n)[:, None] * stride + np.arange(k)[None]
+    return np.einsum("bnkc,kco->bno", x[:, index, :], kernel, optimize=True)
+
+
+class NumpyPolicy:
+    """The exported network evaluated with numpy (no onnxruntime needed; float32 throughout)."""
+
+    def __init__(self, manifest: dict):
+        with np.load(Path(manifest["_dir"]) / "params.npz") as data:
+            self.p = {k: data[k].astype(np.float32) for k in data.files}
+        self.manifest = manifest
+        self.clip = float(manifest["observation_clip"])
+        self.strides = manifest["deployment"].get("encoder_strides")
+        self.spec = manifest["network"]
+
+    def _dense(self, x, name):
+        return x @ self.p[f"params/{name}/kernel"] + self.p[f"params/{name}/bias"]
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, np.float32)
+        single = obs.ndim == 1
+        x = obs[None] if single else obs
+        z = (x - self.p["obs_mean"]) / self.p["obs_std"]
+        if self.clip > 0:
+            z = np.clip(z, -self.clip, self.clip)
+        if self.spec["class"] == "GuideActorCritic":
+            h = z
+            for i in range(len(self.spec["hidden"])):
+                h = elu(self._dense(h, f"actor/hidden{i}"))
+            mean = self._dense(h, "actor/policy")
+        else:
+            rays = self.spec["num_rays"]
+            h = z[:, :rays, None]
+            for i, stride in enumerate(self.strides):
+                name = f"params/encoder/conv{i}"
+                h = elu(conv1d(h, self.p[f"{name}/kernel"], stride) + self.p[f"{name}/bias"])
+            latent = elu(self._dense(h.reshape(h.shape[0], -1), "encoder/project"))
+            h = np.concatenate([latent, z[:, rays:]], -1)
+            for i in range(len(self.spec["hidden"])):
+                h = elu(self._dense(h, f"body{i}"))
+            mean = self._dense(h, "policy")
+        action = np.clip(mean, -1.0, 1.0).astype(np.float32)
+        return action[0] if single else action
+
+
+class OnnxPolicy:
+    """``policy.onnx`` under onnxruntime on the CPU (one thread: latency, not throughput, matters)."""
+
+    def __init__(self, manifest: dict, threads: int = 1):
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise DeployError(
+                "onnxruntime is not installed; `pip install onnxruntime` or use backend='numpy'"
+            ) from None
+        file = Path(manifest["_dir"]) / manifest.get("onnx", {}).get("file", "policy.onnx")
+        if not file.exists():
+            raise DeployError(f"{file} is missing; re-run `python -m train.export`")
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        self.session = ort.InferenceSession(str(file), options, providers=["CPUExecutionProvider"])
+        self.input = self.session.get_inputs()[0].name
+        self.manifest = manifest
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, np.float32)
+        single = obs.ndim == 1
+        out = self.session.run(None, {self.input: obs[None] if single else obs})[0]
+        return out[0] if single else out
+
+
+def load_policy(path: str | Path, backend: str = "onnx"):
+    """The policy of a deployment folder with ``backend`` "onnx" (onnxruntime) or "numpy"."""
+    manifest = load_manifest(path)
+    if backend == "onnx":
+        return OnnxPolicy(manifest)
+    if backend == "numpy":
+        return NumpyPolicy(manifest)
+    raise DeployError(f"unknown backend {backend!r}; use 'onnx' or 'numpy'")

@@ -1,0 +1,545 @@
+"""Exported policies and the deployment shim: ONNX / numpy parity with JAX, observations and
+commands as in training, the safety layer, the watchdog, MCAP replay, and the CLIs."""
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import networks
+from envs.nav import NavConfig, NavEnv
+from methd_jax import deploy, lidar
+from methd_jax import robot as robot_lib
+from methd_jax.deploy import observation, ros_node
+from methd_jax.deploy.mcap_replay import read_inputs
+from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig, arc
+from methd_jax.geometry import KAIROS
+from train import export, sample_bag
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE_BAG = ROOT / "assets" / "deploy_sample.mcap"
+
+
+def _export_random_policy(folder: Path, env, env_name: str, net, seed: int) -> Path:
+    """A policy folder for ``net`` at random init, with a non-trivial observation normaliser."""
+    params = net.init(jax.random.key(seed), jnp.zeros((1, env.observation_size)))
+    rng = np.random.default_rng(seed)
+    stats = types.SimpleNamespace(
+        mean=rng.normal(0, 0.5, env.observation_size).astype(np.float32),
+        std=rng.uniform(0.5, 2.0, env.observation_size).astype(np.float32),
+    )
+    spec = {"class": type(net).__name__, "hidden": list(net.hidden), "init_log_std": 0.0}
+    if env_name != "guide":
+        spec["num_rays"] = net.num_rays
+    return export.export(
+        folder / "policy",
+        env_name=env_name,
+        env=env,
+        network_spec=spec,
+        params=params,
+        obs_stats=stats,
+        obs_clip=5.0,
+        trained={"run": "test", "iteration": 0, "transitions": 0},
+    )
+
+
+@pytest.fixture(scope="module")
+def su_env():
+    return NavEnv(NavConfig(motion="sample", split="all", lab=True, lidar_noise=0.0, lidar_dropout=0.0))
+
+
+@pytest.fixture(scope="module")
+def su_deploy(tmp_path_factory, su_env):
+    """A full-size SU network (720 rays, 3 x 512) exported to a deployment folder."""
+    root = tmp_path_factory.mktemp("su")
+    _export_random_policy(root, su_env, "su", networks.ActorCritic(num_rays=720), seed=3)
+    return export.export_deployment(root, log=lambda *a: None)
+
+
+def test_deployment_folder_is_self_contained_and_described(su_deploy):
+    files = sorted(p.name for p in su_deploy.iterdir())
+    assert files == ["manifest.json", "params.npz", "policy.onnx"]
+    m = json.loads((su_deploy / "manifest.json").read_text())
+    d = m["deployment"]
+    # every observation index is named once, with a unit per component
+    covered = []
+    for f in d["observation"]:
+        covered += list(range(f["start"], f["stop"]))
+        assert len(f["units"]) == len(f["components"])
+    assert covered == list(range(m["observation_size"]))
+    assert d["lidar"] == {
+        "num_rays": 720,
+        "angle_min": 0.0,
+        "angle_increment": 2 * math.pi / 720,
+        "direction": "counter-clockwise from the robot's +x axis",
+        "max_range": 3.0,
+    }
+    assert d["action"]["interpolation_weights"] == [0.5, 0.3, 0.2]
+    assert d["action"]["scale"] == [3.0, 3.0, 2.0]
+    assert (d["action"]["deadzone_linear"], d["action"]["deadzone_angular"]) == (0.005, 0.00436)
+    assert d["control_hz"] == 50 and d["collision_distance"] == 1.37
+    assert m["params_sha256"] == export.params_sha256(su_deploy / "params.npz")
+    assert m["versions"]["onnxruntime"] and m["versions"]["jax2onnx"] and m["versions"]["jax"]
+    assert m["parameters"]["policy"] == 702_694
+    # the exporter's patches of jax.numpy (jax2onnx) stay out of this process
+    np.testing.assert_array_equal(jnp.cumsum(jnp.ones((2, 3)), 1)[1], [1.0, 2.0, 3.0])
+
+
+def test_parity_jax_onnx_numpy_on_1000_observations(su_deploy):
+    jax_policy = export.load(su_deploy)
+    manifest = deploy.load_manifest(su_deploy)
+    onnx_policy, numpy_policy = deploy.OnnxPolicy(manifest), deploy.NumpyPolicy(manifest)
+    rng = np.random.default_rng(0)
+    mean, std = np.asarray(jax_policy.obs_mean), np.asarray(jax_policy.obs_std)
+    # up to 4 standard deviations out: the observation clip at 5 is exercised too
+    obs = (mean + std * rng.normal(0, 2.0, (1000, mean.size))).astype(np.float32)
+    a_jax = np.asarray(jax.jit(jax.vmap(jax_policy))(obs))
+    a_onnx = onnx_policy(obs)
+    a_np = numpy_policy(obs)
+    assert a_onnx.shape == a_np.shape == (1000, 3)
+    assert np.abs(a_jax).max() > 0.05  # a policy that does something
+    np.testing.assert_allclose(a_onnx, a_jax, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(a_np, a_jax, atol=1e-5, rtol=0)
+    # one observation at a time (the controller's call) gives the same
+    np.testing.assert_allclose(onnx_policy(obs[0]), a_jax[0], atol=1e-5, rtol=0)
+
+
+def test_guide_policy_exports_but_does_not_drive_the_base(tmp_path):
+    from envs.guide import GuideConfig, GuideEnv
+
+    env = GuideEnv(GuideConfig(motion="sample", split="all"))
+    _export_random_policy(tmp_path, env, "guide", networks.GuideActorCritic(), seed=1)
+    out = export.export_deployment(tmp_path, log=lambda *a: None)
+    manifest = deploy.load_manifest(out)
+    obs = np.random.default_rng(1).normal(0, 1, (200, 15)).astype(np.float32)
+    a_jax = np.asarray(jax.vmap(export.load(out))(obs))
+    np.testing.assert_allclose(deploy.OnnxPolicy(manifest)(obs), a_jax, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(deploy.NumpyPolicy(manifest)(obs), a_jax, atol=1e-5, rtol=0)
+    with pytest.raises(deploy.DeployError, match="'guide' policy does not drive the base"):
+        deploy.Controller(out)
+
+
+def _inputs(env, state) -> deploy.Inputs:
+    w = state.pipeline_state
+    pose = robot_lib.pose(w.robot)
+    user = jax.vmap(env.bank.at, (0, None))(w.users, w.t)
+    return deploy.Inputs(
+        ranges=np.asarray(lidar.scan(w.floor, pose, num_rays=env.config.num_rays)),
+        robot_pose=np.asarray(pose),
+        velocity=np.asarray(robot_lib.velocity(w.robot)),
+        users=np.concatenate([np.asarray(user["pose"]), np.asarray(user["vel_world"])], 1),
+        goal=np.asarray(w.goal),
+    )
+
+
+def test_controller_matches_the_jax_policy_in_the_training_env(su_deploy, su_env):
+    """50 Hz in lockstep: the controller rebuilds the env's observation from raw inputs (noise off)
+    and its command equals the env's command for the JAX policy's action."""
+    policy = export.load(su_deploy)
+    controller = deploy.Controller(su_deploy, safety=SafetyConfig(enabled=False))
+    step = jax.jit(su_env.step)
+    state = jax.jit(su_env.reset)(jax.random.key(5))
+    for _ in range(40):
+        w = state.pipeline_state
+        action = policy(state.obs)
+        expected_cmd = np.asarray(su_env.command(action, w.actions))
+        out = controller.tick(_inputs(su_env, state))
+        assert out.reason is None
+        np.testing.assert_allclose(out.twist, expected_cmd, atol=1e-5, rtol=0)
+        state = step(state, action)
+        if state.done:
+            break
+    assert controller.ticks >= 20 and not controller.interventions
+
+
+def test_observation_and_command_match_the_env_term_by_term(su_env):
+    state = jax.jit(su_env.reset)(jax.random.key(9))
+    rng = np.random.default_rng(9)
+    step = jax.jit(su_env.step)
+    for _ in range(5):
+        state = step(state, jnp.asarray(rng.uniform(-0.5, 0.5, 3), jnp.float32))
+    w = state.pipeline_state
+    x = _inputs(su_env, state)
+    action = rng.uniform(-1, 1, 3)
+    # env.observe(w, action) reads ``action`` as a_{t-1}, w.actions[0] as a_{t-2}, and the
+    # acceleration from w.velocity
+    obs_env, _, _ = su_env.observe(w, jnp.asarray(action, jnp.float32), jax.random.key(0))
+    d = export.deployment_section(_manifest_of(su_env))
+    obs_np = observation.observe(
+        d,
+        ranges=x.ranges,
+        robot_pose=x.robot_pose,
+        velocity=x.velocity,
+        acceleration=(x.velocity - np.asarray(w.velocity)) * 50.0,
+        actions=np.stack([action, np.asarray(w.actions[0])]),
+        users=x.users,
+        goal=x.goal,
+    )
+    np.testing.assert_allclose(obs_np, np.asarray(obs_env), atol=2e-5, rtol=1e-5)
+    for _ in range(100):
+        a, prev = rng.uniform(-1, 1, 3), rng.uniform(-1, 1, (2, 3))
+        if rng.uniform() < 0.3:  # into the dead zones
+            a, prev = a * 1e-3, prev * 1e-3
+        expected = np.asarray(su_env.command(jnp.asarray(a, jnp.float32), jnp.asarray(prev, jnp.float32)))
+        np.testing.assert_allclose(observation.command(d, a, prev), expected, atol=1e-6)
+
+
+def _manifest_of(env) -> dict:
+    layout = {k: [s.start, s.stop] for k, s in env.observation_layout.items()}
+    return {
+        "env": "su",
+        "env_config": export.jsonable(env.config),
+        "observation_layout": layout,
+        "observation_clip": 5.0,
+    }
+
+
+# -- the safety layer ---------------------------------------------------------------------------
+
+
+def _wall_ranges(x_wall: float, num_rays: int = 720) -> np.ndarray:
+    """Ranges to an infinite wall x = x_wall (robot frame)."""
+    ang = 2 * np.pi * np.arange(num_rays) / num_rays
+    c = np.cos(ang)
+    return np.where(c > 1e-9, x_wall / np.where(c > 1e-9, c, 1.0), np.inf)
+
+
+def _monitor(**kw) -> CollisionMonitor:
+    return CollisionMonitor(KAIROS.length, KAIROS.width, 720, 1.37, SafetyConfig(**kw))
+
+
+def _newly_hits(command, ranges, horizon=1.0, dt=0.001) -> bool:
+    """Ground truth at 10x the monitor's time resolution, footprint without margin."""
+    ang = 2 * np.pi * np.arange(len(ranges)) / len(ranges)
+    ok = np.isfinite(ranges)
+    pts = np.stack([ranges[ok] * np.cos(ang[ok]), ranges[ok] * np.sin(ang[ok])], 1)
+    half = np.array([KAIROS.length / 2, KAIROS.width / 2])
+    poses = np.concatenate(
+        [np.zeros((1, 3)), arc(np.asarray(command), np.arange(1, round(horizon / dt) + 1) * dt)]
+    )
+    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
+    dx, dy = pts[None, :, 0] - poses[:, :1], pts[None, :, 1] - poses[:, 1:2]
+    inside = (np.abs(c * dx + s * dy) <= half[0]) & (np.abs(-s * dx + c * dy) <= half[1])
+    return bool(np.any(inside[1:] & ~inside[:1]))
+
+
+def test_safety_leaves_free_space_alone():
+    m = _monitor()
+    rng = np.random.default_rng(0)
+    far = np.full(720, np.inf)
+    far[::7] = 9.0  # a distant wall, out of the sweep's reach
+    for _ in range(50):
+        cmd = rng.uniform([-1.5, -1.5, -1.0], [1.5, 1.5, 1.0])
+        out, reason = m(cmd, far, np.zeros((0, 2)), np.zeros((0, 2)))
+        assert reason is None and np.array_equal(out, cmd)
+
+
+def test_safety_wall_ahead_slows_then_stops_never_hits():
+    m = _monitor()
+    cmd = np.array([2.0, 0.0, 0.0])
+    clearance = []
+    for x_wall in (3.5, 2.0, 1.2, 0.8, 0.62):
+        out, reason = m(cmd, _wall_ranges(x_wall), np.zeros((0, 2)), np.zeros((0, 2)))
+        assert not _newly_hits(out, _wall_ranges(x_wall))
+        clearance.append(np.linalg.norm(out))
+        if x_wall == 3.5:  # 2 m/s for 1 s stays 0.3 m short of the wall: untouched
+            assert reason is None and np.array_equal(out, cmd)
+        else:
+            assert reason == "obstacle"
+    # slower the closer the wall; stopped when the margin is reached
+    assert clearance == sorted(clearance, reverse=True) and clearance[-1] == 0.0
+    assert clearance[1] > 1.0  # 2 m ahead: still driving briskly
+    # driving away from the wall is never limited
+    out, reason = m(np.array([-1.0, 0.3, 0.5]), _wall_ranges(0.64), np.zeros((0, 2)), np.zeros((0, 2)))
+    assert reason is None
+
+
+def test_safety_random_scenes_never_lead_into_a_new_hit():
+    m = _monitor()
+    rng = np.random.default_rng(1)
+    limited = 0
+    for _ in range(150):
+        ranges = rng.uniform(0.6, 4.0, 720)
+        ranges[rng.uniform(size=720) < 0.5] = np.inf
+        cmd = rng.uniform([-3, -3, -2], [3, 3, 2])
+        out, reason = m(cmd, ranges, np.zeros((0, 2)), np.zeros((0, 2)))
+        limited += reason is not None
+        assert not _newly_hits(out, ranges)
+        # the filter only scales: same direction, never faster
+        assert (
+            np.allclose(np.cross(out, cmd), 0, atol=1e-9)
+            and np.linalg.norm(out) <= np.linalg.norm(cmd) + 1e-12
+        )
+    assert limited > 50  # the scenes are cluttered: the test exercises the filter
+
+
+def test_safety_user_stepping_in_front():
+    m = _monitor()
+    free = np.full(720, np.inf)
+    cmd = np.array([1.5, 0.0, 0.0])
+    # a user 2.5 m ahead, 1.2 m to the left, stepping into the path at 1.2 m/s
+    user, vel = np.array([[2.5, 1.2]]), np.array([[0.0, -1.2]])
+    out, reason = m(cmd, free, user, vel)
+    assert reason == "user" and np.linalg.norm(out) < np.linalg.norm(cmd)
+    t = np.linspace(0, 1.0, 1001)
+    robot = arc(out, t)[:, :2]
+    d = np.linalg.norm(user + t[:, None] * vel - robot, axis=1)
+    assert d.min() >= 1.37
+    # the same user walking away leaves the command alone
+    out, reason = m(cmd, free, user, -vel)
+    assert reason is None and np.array_equal(out, cmd)
+    # already too close: moving away is allowed, moving closer is stopped
+    close = np.array([[1.2, 0.0]])
+    assert m(np.array([-1.0, 0.0, 0.0]), free, close, np.zeros((1, 2)))[1] is None
+    out, reason = m(np.array([1.0, 0.0, 0.0]), free, close, np.zeros((1, 2)))
+    assert reason == "user" and not np.any(out)
+
+
+def test_controller_counts_safety_interventions(su_deploy):
+    c = deploy.Controller(su_deploy, backend="numpy")
+    x = deploy.Inputs(
+        ranges=_wall_ranges(0.62),
+        robot_pose=np.zeros(3),
+        velocity=np.zeros(3),
+        users=np.array([[-5.0, 0.0, 0.0, 0.0, 0.0, 0.0]]),
+        goal=np.array([4.0, 0.0, 0.0]),
+    )
+    outs = [c.tick(x) for _ in range(20)]
+    for o in outs:
+        assert not _newly_hits(o.twist, x.ranges)
+    limited = sum(o.reason == "safety:obstacle" for o in outs)
+    assert c.interventions["safety:obstacle"] == limited
+    assert sum(c.interventions.values()) == sum(o.reason is not None for o in outs)
+
+
+# -- the watchdog -------------------------------------------------------------------------------
+
+
+def _good(n_users: int = 1) -> deploy.Inputs:
+    return deploy.Inputs(
+        ranges=np.full(720, 2.5),
+        robot_pose=np.array([0.0, 0.0, 0.3]),
+        velocity=np.array([0.2, 0.0, 0.0]),
+        users=np.tile([3.0, 1.0, 0.0, 0.1, 0.0, 0.0], (n_users, 1)),
+        goal=np.array([1.0, 1.0, 0.0]),
+        scan_stamp=10.0,
+        odom_stamp=10.0,
+        users_stamp=10.0,
+    )
+
+
+@pytest.mark.parametrize(
+    "change, now, reason",
+    [
+        ({"scan_stamp": 9.5}, 10.0, "watchdog:stale_scan"),
+        ({"odom_stamp": 9.0}, 10.0, "watchdog:stale_odom"),
+        ({"users_stamp": float("nan")}, 10.0, "watchdog:stale_users"),
+        ({"ranges": np.r_[np.full(719, 2.0), np.nan]}, 10.0, "watchdog:nan_ranges"),
+        ({"ranges": np.full(700, 2.0)}, 10.0, "watchdog:shape_ranges"),
+        ({"ranges": np.array([])}, 10.0, "watchdog:empty_ranges"),
+        ({"ranges": None}, 10.0, "watchdog:missing_ranges"),
+        ({"ranges": np.r_[np.full(719, 2.0), -0.1]}, 10.0, "watchdog:negative_ranges"),
+        ({"ranges": "not a scan"}, 10.0, "watchdog:invalid_ranges"),
+        ({"goal": np.array([np.nan, 0.0, 0.0])}, 10.0, "watchdog:nan_goal"),
+        ({"users": np.zeros((2, 6))}, 10.0, "watchdog:shape_users"),
+        ({"velocity": np.array([0.0, np.inf, 0.0])}, 10.0, "watchdog:nan_velocity"),
+        ({"acceleration": np.zeros(2)}, 10.0, "watchdog:shape_acceleration"),
+    ],
+)
+def test_watchdog_stops_on_bad_inputs(su_deploy, change, now, reason):
+    c = deploy.Controller(su_deploy, backend="numpy")
+    assert c.tick(_good(), now=10.05).reason in (None, "safety:obstacle", "safety:user")
+    out = c.tick(dataclasses.replace(_good(), **change), now=now)
+    assert out.reason == reason and not np.any(out.twist) and not np.any(out.policy)
+    assert c.interventions[reason] == 1
+    assert not np.any(c.actions)  # the history restarts from a standstill
+
+
+def test_watchdog_catches_a_failing_policy(su_deploy):
+    c = deploy.Controller(su_deploy, backend="numpy")
+
+    def broken(obs):
+        raise MemoryError("out of memory")
+
+    c.policy = broken
+    out = c.tick(_good())
+    assert out.reason == "error:MemoryError"
+    assert not np.any(out.twist) and c.interventions[out.reason] == 1
+    c.policy = lambda obs: np.full(3, np.nan)
+    assert c.tick(_good()).reason == "watchdog:nan_action"
+
+
+def test_controller_tick_latency_fits_the_50hz_budget(su_deploy):
+    """The goal (p99 < 2 ms) is measured in docs/benchmarks.md; here, on a shared CI core, only the
+    50 Hz budget itself is asserted."""
+    stats = deploy.latency(deploy.Controller(su_deploy), ticks=300)
+    assert stats["ticks"] == 300 and 0 < stats["median_ms"] <= stats["p99_ms"] <= stats["max_ms"]
+    assert stats["p99_ms"] < 20.0, stats
+
+
+# -- replay ------------------------------------------------------------------------------------
+
+
+def test_scan_to_rays_resamples_any_laserscan():
+    # 1440 beams from -pi, 0.25 degree apart, each reading 1 m + its index / 1000
+    ranges = 1.0 + np.arange(1440) / 1000
+    rays = deploy.scan_to_rays(ranges, -math.pi, math.radians(0.25), 0.1, 10.0, 720)
+    ours = 0.5 * np.arange(720)  # degrees: 0, 0.5, 1, ...
+    beam = (np.rint((ours + 180.0) / 0.25).astype(int)) % 1440
+    np.testing.assert_allclose(rays, ranges[beam])
+    # a coarser scan (1 degree) gives each ray its nearest beam
+    coarse = deploy.scan_to_rays(np.arange(360.0), 0.0, math.radians(1.0), 0.0, 1e3, 720)
+    assert coarse[2] == 1.0 and coarse[4] == 2.0 and coarse[718] == 359.0
+    # out of [range_min, range_max] -> no return; a partial scan leaves uncovered rays empty
+    r = deploy.scan_to_rays(np.array([0.05, 2.0, 50.0]), 0.0, math.radians(0.5), 0.1, 10.0, 720)
+    assert np.isinf(r[0]) and r[1] == 2.0 and np.isinf(r[2]) and np.isinf(r[3:]).all()
+    assert np.isnan(deploy.scan_to_rays(np.array([np.nan] * 720), 0.0, 2 * np.pi / 720, 0.1, 10.0, 720)).all()
+
+
+def _read(path, topic):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        return [
+            (schema.name, m.log_time, msg)
+            for schema, _, m, msg in reader.iter_decoded_messages(topics=[topic])
+        ]
+
+
+def test_replay_the_sample_bag(su_deploy, tmp_path):
+    c = deploy.Controller(su_deploy)
+    summary = deploy.replay(c, SAMPLE_BAG, tmp_path / "cmd.mcap")
+    cmds = _read(tmp_path / "cmd.mcap", "/cmd_vel")
+    raw = _read(tmp_path / "cmd.mcap", "/cmd_vel_policy")
+    scans = _read(SAMPLE_BAG, "/scan")
+    assert len(cmds) == len(raw) == summary["ticks"] == len(scans)
+    assert {c[0] for c in cmds} == {"geometry_msgs/msg/Twist"}
+    times = np.array([c[1] for c in cmds])
+    assert np.all(np.diff(times) == 20_000_000)  # 50 Hz
+    assert summary["moving_ticks"] > 0.9 * summary["ticks"]  # inputs are fresh and valid all along
+    assert not any(k.startswith("watchdog") for k in summary["interventions"])
+    # the replayed commands are the controller's: tick 0 by hand
+    first = read_inputs(SAMPLE_BAG, 720, 1)
+    twist = np.array([cmds[0][2].linear.x, cmds[0][2].linear.y, cmds[0][2].angular.z])
+    c2 = deploy.Controller(su_deploy)
+    odom = first["/odom"].values[0]
+    expected = c2.tick(
+        deploy.Inputs(
+            ranges=first["/scan"].values[0],
+            robot_pose=odom[0],
+            velocity=odom[1],
+            users=first["/user0/odom"].values[0][None],
+            goal=first["/goal"].values[0],
+        )
+    )
+    np.testing.assert_allclose(twist, expected.twist, atol=1e-9)
+
+
+def test_replay_a_bag_with_a_scan_gap_reaches_the_watchdog(su_deploy, tmp_path):
+    rows = {
+        "ranges": np.full((100, 720), 2.0),
+        "pose": np.zeros((100, 3)),
+        "velocity": np.zeros((100, 3)),
+        "user_pose": np.tile([4.0, 0.0, 0.0], (100, 1)),
+        "user_twist": np.zeros((100, 3)),
+        "goal": np.tile([1.0, 0.0, 0.0], (100, 1)),
+    }
+    bag = sample_bag.write(tmp_path / "in.mcap", rows, drop={"/scan": range(40, 70)})
+    summary = deploy.replay(deploy.Controller(su_deploy), bag, tmp_path / "out.mcap")
+    assert summary["ticks"] == 100
+    # scans stop at tick 39 (t = 0.78 s); ticks more than 0.2 s later (50 to 69) are stale
+    assert summary["interventions"]["watchdog:stale_scan"] == 20
+
+
+def test_sample_bag_is_what_the_recorder_makes():
+    """The shipped bag comes from `python -m train.sample_bag` (its documented command)."""
+    scans = _read(SAMPLE_BAG, "/scan")
+    odom = _read(SAMPLE_BAG, "/odom")
+    assert len(scans) == len(odom) >= 250 and scans[0][2].ranges.__len__() == 720
+    pos = np.array([[o[2].pose.pose.position.x, o[2].pose.pose.position.y] for o in odom])
+    assert np.linalg.norm(pos[-1] - pos[0]) > 0.5  # the base drives in it
+
+
+# -- no JAX, ROS guard, CLIs --------------------------------------------------------------------
+
+
+def test_the_controller_runs_without_jax(su_deploy):
+    code = (
+        "import sys, numpy as np\n"
+        "sys.modules['jax'] = None  # any import of jax now fails\n"
+        "from methd_jax.deploy import Controller, Inputs\n"
+        f"c = Controller({str(su_deploy)!r})\n"
+        "user = np.array([[4.0, 0, 0, 0, 0, 0]])\n"
+        "x = Inputs(np.full(720, 2.0), np.zeros(3), np.zeros(3), user, np.ones(3))\n"
+        "out = c.tick(x)\n"
+        "assert out.reason in (None, 'safety:obstacle'), out.reason\n"
+        "assert not [m for m in sys.modules if m.startswith(('jax.', 'flax', 'optax', 'mujoco'))]\n"
+        "print('ok', out.twist)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0 and r.stdout.startswith("ok"), r.stderr
+
+
+def test_ros_node_is_guarded(su_deploy):
+    assert not ros_node.available()  # no ROS 2 on the test machine
+    with pytest.raises(RuntimeError, match="rclpy is not importable"):
+        ros_node.run(str(su_deploy))
+    r = subprocess.run(
+        [sys.executable, "-m", "methd_jax.deploy", "node", str(su_deploy)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert r.returncode == 1 and r.stderr.strip().count("\n") == 0 and "source a ROS 2" in r.stderr
+
+
+def test_deploy_cli_replay_and_latency(su_deploy, tmp_path):
+    from methd_jax.deploy.__main__ import main
+
+    out = tmp_path / "cmd.mcap"
+    assert main(["replay", str(SAMPLE_BAG), str(su_deploy), "--out", str(out), "--backend", "numpy"]) == 0
+    assert len(_read(out, "/cmd_vel")) > 0
+    assert main(["latency", str(su_deploy), "--ticks", "20"]) == 0
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["replay", "missing.mcap", "{policy}", "--out", "{tmp}/o.mcap"], "missing.mcap: no such file"),
+        (["replay", "{bag}", "{tmp}", "--out", "{tmp}/o.mcap"], "holds no exported policy"),
+        (["latency", "{policy}", "--ticks", "0"], "--ticks must be >= 1"),
+        (["latency", "{policy}", "--backend", "tensorrt"], "invalid choice"),
+    ],
+)
+def test_deploy_cli_errors_are_one_line(su_deploy, tmp_path, capsys, argv, message):
+    from methd_jax.deploy.__main__ import main
+
+    argv = [a.format(policy=su_deploy, tmp=tmp_path, bag=SAMPLE_BAG) for a in argv]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code in (1, 2) and message in err and err.strip().count("\n") == 0
+
+
+def test_export_cli(tmp_path, capsys, su_deploy):
+    with pytest.raises(SystemExit) as e:
+        export.main([str(tmp_path / "nothing")])
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and "no such run or policy folder" in err and err.strip().count("\n") == 0
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit):
+        export.main([str(tmp_path / "empty")])
+    assert "holds no exported policy" in capsys.readouterr().err
+    # a training export without a deployment section is refused by the controller, with the fix
+    with pytest.raises(deploy.DeployError, match=r"python -m train\.export"):
+        deploy.Controller(su_deploy.parent / "policy")
