@@ -52,7 +52,9 @@ def _random(env):
     return lambda obs, k: jax.random.uniform(k, (obs.shape[0], env.action_size), minval=-1, maxval=1)
 
 
-@pytest.mark.parametrize("name", ["su", "nav", "guide"])
+# nav runs the su code with a second user; its 2048-copy run is in the slow set to keep the default
+# suite under 15 minutes on CI's 2 cores
+@pytest.mark.parametrize("name", ["su", pytest.param("nav", marks=pytest.mark.slow), "guide"])
 def test_2048_copies_step_500_times_finite(name, bank):
     env = envs.make(name, bank=bank)
     final, (reward, _, metrics, ep_done, _, finite) = _rollout(env, 2048, 500, _random(env))
@@ -232,6 +234,7 @@ def test_users_visible_option(bank):
     assert float(obs_blind[0]) > 2.0
 
 
+@pytest.mark.slow  # an option beyond the thesis, off by default
 def test_randomized_dynamics_option(bank):
     env = envs.make("su", bank=bank, randomize_dynamics=True)
     reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
@@ -250,6 +253,7 @@ def test_randomized_dynamics_option(bank):
     )
 
 
+@pytest.mark.slow  # an option beyond the thesis, off by default
 def test_action_latency_option(bank):
     env = envs.make("su", bank=bank, floor=EMPTY, action_latency=3)
     state = jax.jit(env.reset)(jax.random.key(1))
@@ -261,6 +265,7 @@ def test_action_latency_option(bank):
     assert speeds[:3] == [0.0, 0.0, 0.0] and speeds[3] > 0
 
 
+@pytest.mark.slow  # an option beyond the thesis, off by default
 def test_request_jitter_option(bank):
     env = envs.make("su", bank=bank, request_jitter=3.0)
     w = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), 256)).pipeline_state

@@ -61,6 +61,19 @@ def odometry(msg) -> tuple[np.ndarray, np.ndarray]:
     return pose, np.array([t.linear.x, t.linear.y, t.angular.z])
 
 
+def user_state(msg) -> np.ndarray:
+    """A user's Odometry (twist in the user's frame) as world x, y, yaw, vx, vy, wz."""
+    pose, twist = odometry(msg)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.concatenate([pose, [c * twist[0] - s * twist[1], s * twist[0] + c * twist[1], twist[2]]])
+
+
+def goal_pose(msg) -> np.ndarray:
+    """A PoseStamped as world x, y, yaw."""
+    p = msg.pose
+    return np.array([p.position.x, p.position.y, ros_messages.quaternion_yaw(p.orientation)])
+
+
 class _Latest:
     """Messages of one topic sorted by stamp; ``at(t)`` the newest at or before t."""
 
@@ -104,17 +117,11 @@ def read_inputs(bag: str | Path, num_rays: int, num_users: int, topics: Topics =
                         )
                     )
                 elif channel.topic == topics.goal:
-                    p = msg.pose
-                    s.values.append(
-                        np.array([p.position.x, p.position.y, ros_messages.quaternion_yaw(p.orientation)])
-                    )
+                    s.values.append(goal_pose(msg))
                 elif channel.topic == topics.odom:
                     s.values.append(odometry(msg))
                 else:
-                    pose, twist = odometry(msg)
-                    c, sn = math.cos(pose[2]), math.sin(pose[2])  # user-frame twist -> world
-                    world = [c * twist[0] - sn * twist[1], sn * twist[0] + c * twist[1], twist[2]]
-                    s.values.append(np.concatenate([pose, world]))
+                    s.values.append(user_state(msg))
     except FileNotFoundError:
         raise DeployError(f"{bag}: no such file") from None
     except (McapError, struct.error, EOFError) as e:

@@ -8,12 +8,11 @@ replay shows is what the node does. Importing this module does not need ROS; run
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from methd_jax import ros_messages
 from methd_jax.deploy.controller import Controller, Inputs
-from methd_jax.deploy.mcap_replay import Topics, odometry, scan_to_rays
+from methd_jax.deploy.mcap_replay import Topics, goal_pose, odometry, scan_to_rays, user_state
 
 
 def _rclpy():
@@ -44,7 +43,7 @@ def run(policy_dir: str, topics: Topics = Topics(), backend: str = "onnx") -> No
     latest: dict = {}
 
     def stamp(msg) -> float:
-        return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        return ros_messages.stamp_ns(msg) / 1e9
 
     def on_scan(msg):
         ranges = scan_to_rays(
@@ -56,19 +55,11 @@ def run(policy_dir: str, topics: Topics = Topics(), backend: str = "onnx") -> No
         latest["odom"] = (stamp(msg), odometry(msg))
 
     def on_goal(msg):
-        p = msg.pose
-        yaw = math.atan2(
-            2 * (p.orientation.w * p.orientation.z + p.orientation.x * p.orientation.y),
-            1 - 2 * (p.orientation.y**2 + p.orientation.z**2),
-        )
-        latest["goal"] = np.array([p.position.x, p.position.y, yaw])
+        latest["goal"] = goal_pose(msg)
 
     def on_user(i):
         def callback(msg):
-            pose, twist = odometry(msg)
-            c, s = math.cos(pose[2]), math.sin(pose[2])
-            world = [c * twist[0] - s * twist[1], s * twist[0] + c * twist[1], twist[2]]
-            latest[f"user{i}"] = (stamp(msg), np.concatenate([pose, world]))
+            latest[f"user{i}"] = (stamp(msg), user_state(msg))
 
         return callback
 
