@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import export_random_policy
 
 import networks
 from envs.nav import NavConfig, NavEnv
@@ -28,29 +29,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = ROOT / "assets" / "deploy_sample.mcap"
 
 
-def _export_random_policy(folder: Path, env, env_name: str, net, seed: int) -> Path:
-    """A policy folder for ``net`` at random init, with a non-trivial observation normaliser."""
-    params = net.init(jax.random.key(seed), jnp.zeros((1, env.observation_size)))
-    rng = np.random.default_rng(seed)
-    stats = types.SimpleNamespace(
-        mean=rng.normal(0, 0.5, env.observation_size).astype(np.float32),
-        std=rng.uniform(0.5, 2.0, env.observation_size).astype(np.float32),
-    )
-    spec = {"class": type(net).__name__, "hidden": list(net.hidden), "init_log_std": 0.0}
-    if env_name != "guide":
-        spec["num_rays"] = net.num_rays
-    return export.export(
-        folder / "policy",
-        env_name=env_name,
-        env=env,
-        network_spec=spec,
-        params=params,
-        obs_stats=stats,
-        obs_clip=5.0,
-        trained={"run": "test", "iteration": 0, "transitions": 0},
-    )
-
-
 @pytest.fixture(scope="module")
 def su_env():
     return NavEnv(NavConfig(motion="sample", split="all", lab=True, lidar_noise=0.0, lidar_dropout=0.0))
@@ -60,7 +38,7 @@ def su_env():
 def su_deploy(tmp_path_factory, su_env):
     """A full-size SU network (720 rays, 3 x 512) exported to a deployment folder."""
     root = tmp_path_factory.mktemp("su")
-    _export_random_policy(root, su_env, "su", networks.ActorCritic(num_rays=720), seed=3)
+    export_random_policy(root, su_env, "su", networks.ActorCritic(num_rays=720), seed=3)
     return export.export_deployment(root, log=lambda *a: None)
 
 
@@ -116,7 +94,7 @@ def test_guide_policy_exports_but_does_not_drive_the_base(tmp_path):
     from envs.guide import GuideConfig, GuideEnv
 
     env = GuideEnv(GuideConfig(motion="sample", split="all"))
-    _export_random_policy(tmp_path, env, "guide", networks.GuideActorCritic(), seed=1)
+    export_random_policy(tmp_path, env, "guide", networks.GuideActorCritic(), seed=1)
     out = export.export_deployment(tmp_path, log=lambda *a: None)
     manifest = deploy.load_manifest(out)
     obs = np.random.default_rng(1).normal(0, 1, (200, 15)).astype(np.float32)

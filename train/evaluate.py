@@ -45,7 +45,7 @@ def load_policy(run: str | Path, bank, kind: str, guide: str | Path | None = Non
     config = export.from_jsonable(NavConfig(), policy.manifest["env_config"])
     guide_policy = None
     if kind == "nav":
-        guide = guide or _run_guide(run)
+        guide = guide or guide_run_of(run)
         if not guide:
             raise ConfigError(
                 f"{run} was trained with the scripted goal source; pass its GuideRL run as --guide"
@@ -60,7 +60,8 @@ def load_policy(run: str | Path, bank, kind: str, guide: str | Path | None = Non
     return methods.Policy(env, policy, name="DRL")
 
 
-def _run_guide(run: str | Path) -> str:
+def guide_run_of(run: str | Path) -> str:
+    """The GuideRL run a NavRL run was trained with (its ``guide_run=`` override), or ""."""
     meta = Path(run) / "config.json"
     if not meta.exists():
         return ""

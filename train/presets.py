@@ -194,17 +194,23 @@ def _set(obj, keys: list[str], text: str, path: str):
         raise ConfigError(f"{path}={text}: {err}") from None
 
 
-def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
-    """``config`` with each ``key=value`` applied in order; :class:`ConfigError` on any bad one."""
+def override(obj, overrides: list[str]):
+    """``obj`` (any configuration dataclass) with each dotted ``key=value`` applied in order;
+    :class:`ConfigError` on any bad one."""
     for item in overrides:
         key, sep, text = item.partition("=")
         if not sep or not key.strip():
             raise ConfigError(f"override {item!r} is not key=value")
         key = key.strip()
-        if key == "env_name":
-            raise ConfigError("env_name is fixed by the preset; pick another preset instead")
-        config = _set(config, key.split("."), text.strip(), key)
-    return config
+        obj = _set(obj, key.split("."), text.strip(), key)
+    return obj
+
+
+def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
+    """``config`` with each ``key=value`` applied in order; :class:`ConfigError` on any bad one."""
+    if any(item.partition("=")[0].strip() == "env_name" for item in overrides):
+        raise ConfigError("env_name is fixed by the preset; pick another preset instead")
+    return override(config, overrides)
 
 
 def options(config: RunConfig, prefix: str = "") -> list[tuple[str, object, str]]:
