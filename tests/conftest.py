@@ -1,20 +1,36 @@
 """Shared helpers: MuJoCo's own ray casting as the independent reference; a compilation cache."""
 
 import atexit
+import os
 import shutil
 import tempfile
+import types
+from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
 
 from methd_jax import floors
+from train import export
 
-# Many tests train the same tiny configuration from scratch; XLA's persistent cache (fresh for each
-# session) compiles each distinct program once instead of once per test.
-_XLA_CACHE = tempfile.mkdtemp(prefix="methd-jax-test-xla-")
-atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
+# Many tests compile the same programs (the tiny training configuration, the engines, the envs);
+# one persistent XLA cache for the whole session compiles each distinct program once. The first
+# process that loads this file (pytest's controller, before xdist starts its workers) makes it and
+# passes it on through the environment: to the workers, to subprocesses (`python -m ...`) and to the
+# notebooks' kernels, which read JAX's own environment variables.
+_XLA_CACHE = os.environ.get("METHD_JAX_TEST_XLA_CACHE", "")
+if not _XLA_CACHE:
+    _XLA_CACHE = tempfile.mkdtemp(prefix="methd-jax-test-xla-")
+    os.environ["METHD_JAX_TEST_XLA_CACHE"] = _XLA_CACHE
+    atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
+os.environ.update(
+    JAX_COMPILATION_CACHE_DIR=_XLA_CACHE,
+    JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1",
+    JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0",
+)
 jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -56,3 +72,26 @@ def mujoco_scan_model(m, d, pose, num_rays: int = 720) -> np.ndarray:
 @pytest.fixture(scope="session")
 def mujoco_reference():
     return mujoco_scan
+
+
+def export_random_policy(folder: Path, env, env_name: str, net, seed: int) -> Path:
+    """A policy folder for ``net`` at random init, with a non-trivial observation normaliser."""
+    params = net.init(jax.random.key(seed), jnp.zeros((1, env.observation_size)))
+    rng = np.random.default_rng(seed)
+    stats = types.SimpleNamespace(
+        mean=rng.normal(0, 0.5, env.observation_size).astype(np.float32),
+        std=rng.uniform(0.5, 2.0, env.observation_size).astype(np.float32),
+    )
+    spec = {"class": type(net).__name__, "hidden": list(net.hidden), "init_log_std": 0.0}
+    if env_name != "guide":
+        spec["num_rays"] = net.num_rays
+    return export.export(
+        folder / "policy",
+        env_name=env_name,
+        env=env,
+        network_spec=spec,
+        params=params,
+        obs_stats=stats,
+        obs_clip=5.0,
+        trained={"run": "test", "iteration": 0, "transitions": 0},
+    )
