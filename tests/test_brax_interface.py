@@ -3,38 +3,20 @@
 import functools
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax.training.agents.ppo import networks as ppo_networks
 from brax.training.agents.ppo import train as ppo
-from jax.sharding import Mesh, NamedSharding
-from jax.sharding import PartitionSpec as P
 
 import envs
 from methd_jax import motion
-
-
-def _device_put_replicated(x, devices):
-    """JAX's documented drop-in for the removed ``jax.device_put_replicated``."""
-    sharding = NamedSharding(Mesh(np.array(devices), ("x",)), P("x"))
-    return jax.tree.map(lambda y: jax.device_put(jnp.stack([y] * len(devices)), sharding), x)
+from train import brax_peer
 
 
 @pytest.fixture
 def brax_on_new_jax(monkeypatch):
-    """Brax 0.14's PPO still calls ``jax.device_put_replicated``, which jax 0.10 removed (google/brax
-    issue 671, open); patch it back for this test only, rather than pinning an old jax."""
-    if not hasattr(jax, "device_put_replicated") or _removed(jax, "device_put_replicated"):
-        monkeypatch.setattr(jax, "device_put_replicated", _device_put_replicated, raising=False)
-
-
-def _removed(module, name) -> bool:
-    try:
-        getattr(module, name)
-    except AttributeError:
-        return True
-    return False
+    """Brax 0.14 on jax 0.10: ``jax.device_put_replicated`` put back for this test only."""
+    monkeypatch.setattr(jax, "device_put_replicated", brax_peer._device_put_replicated, raising=False)
 
 
 # su under Brax's trainer takes ~1.5 min of CI's 15; guide checks the same interface in CI and

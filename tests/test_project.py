@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from train import bench
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -39,43 +41,42 @@ def test_readme_has_exactly_two_setup_commands_and_ci_runs_the_test_one():
     assert ci.stdout.strip() == commands[1]
 
 
-def test_bench_cli_smoke(tmp_path):
+def test_bench_quick_checks_ratios_against_the_peers(tmp_path):
+    """``python -m train.bench --quick``: the CI check that our caster and trainer beat their peers."""
     out = tmp_path / "bench.json"
     run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "train.bench",
-            "--sizes",
-            "8",
-            "--robots",
-            "8",
-            "--env-sizes",
-            "4",
-            "--train-envs",
-            "8",
-            "--repeats",
-            "1",
-            "--json",
-            str(out),
-        ],
+        [sys.executable, "-m", "train.bench", "--quick", "--json", str(out)],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert run.returncode == 0, run.stdout + run.stderr
-    assert "mjx.ray" in run.stdout and "robot-steps/s" in run.stdout
+    assert "mjx.ray" in run.stdout and "Brax PPO" in run.stdout and "robot-steps/s" in run.stdout
     res = json.loads(out.read_text())
     (row,) = res["lidar"]
-    assert row["floors"] == 8 and row["ours_scans_per_s"] > 0 and row["mjx_ray_scans_per_s"] > 0
-    assert row["rays_agreeing_1mm"] >= 0.999
-    assert res["robot"]["robots"] == 8 and res["robot"]["robot_steps_per_s"] > 0
-    assert [(r["env"], r["envs"]) for r in res["envs"]] == [("su", 4), ("nav", 4)]
-    assert all(r["env_steps_per_s"] > 0 for r in res["envs"])
+    assert row["floors"] == 64 and row["ratio"] >= 1.0 and row["rays_agreeing_1mm"] >= 0.999
+    assert res["robot"]["robots"] == 256 and res["robot"]["robot_steps_per_s"] > 0
+    assert [(r["env"], r["envs"]) for r in res["envs"]] == [("su", 64), ("nav", 64)]
     train = res["train"]
-    assert train["envs"] == 8 and train["transitions_per_iteration"] == 8 * 48
-    assert train["transitions_per_s"] == pytest.approx(8 * 48 / train["iteration_s"])
+    assert train["envs"] == 16 and train["transitions_per_iteration"] == 16 * 48
+    assert train["ratio_brax"] == pytest.approx(
+        train["ours_transitions_per_s"] / train["brax_transitions_per_s"]
+    )
+    assert train["ratio_brax"] >= 1.0 and train["brax_compile_s"] > 0
+
+
+def test_bench_checks_fail_when_a_peer_is_faster():
+    lidar = {"floors": 64, "ratio": 0.8, "rays_agreeing_1mm": 0.99}
+    results = {"lidar": [lidar], "train": {"envs": 16, "ratio_brax": 0.9}}
+    failures = bench.checks(results)
+    assert len(failures) == 3
+    assert "slower than mjx.ray" in failures[1] and "slower than Brax's" in failures[2]
+    results = {
+        "lidar": [lidar | {"ratio": 3.0, "rays_agreeing_1mm": 1.0}],
+        "train": {"envs": 16, "ratio_brax": 1.2},
+    }
+    assert bench.checks(results) == []
 
 
 @pytest.mark.parametrize("args", [["--sizes", "0"], ["--repeats", "-1"], ["--bogus"]])
@@ -84,3 +85,22 @@ def test_bench_cli_rejects_bad_arguments(args):
         [sys.executable, "-m", "train.bench", *args], cwd=ROOT, capture_output=True, text=True
     )
     assert run.returncode == 2 and "error:" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_scaling_plot_from_measurements(tmp_path):
+    scaling = {
+        "by_envs": [{"envs": n, "env_steps_per_s": 1000.0 * n**0.5} for n in (256, 1024, 4096)],
+        "by_obstacles": [{"obstacles": k, "envs": 2048, "env_steps_per_s": 9000.0 / k} for k in (8, 16, 32)],
+    }
+    bench.plot_scaling(scaling, tmp_path / "scaling.png")
+    assert (tmp_path / "scaling.png").stat().st_size > 5000
+
+
+@pytest.mark.slow
+def test_scaling_measures_env_steps_against_envs_and_obstacles():
+    logged = []
+    scaling = bench.bench_scaling([4, 8], [2, 6], 1, logged.append)
+    assert [r["envs"] for r in scaling["by_envs"]] == [4, 8]
+    assert [(r["obstacles"], r["envs"]) for r in scaling["by_obstacles"]] == [(2, 8), (6, 8)]
+    assert all(r["env_steps_per_s"] > 0 for r in scaling["by_envs"] + scaling["by_obstacles"])
+    assert len(logged) == 4

@@ -9,9 +9,15 @@ Sections (each timed in this one process, on whatever JAX device is default):
 * ``robot``: MJX base steps (one 50 Hz control tick each) per second for a fleet.
 * ``envs``: ``su`` and ``nav`` environment steps per second (LiDAR, noise, MJX base, users, rewards),
   with the shipped sample trajectories (the replayed data does not change the cost).
+* ``scaling`` (``--scaling PNG``): ``su`` env steps/s at 256 to 16,384 environments and with 8 to
+  64 obstacles per floor, plotted.
 * ``train``: PPO iterations of the ``su`` preset (Table 4.4: 48 rollouts, 5 epochs x 8 minibatches,
-  the 702k-parameter network) at ``--train-envs`` environments: transitions per second with the
-  updates included, the figure the thesis's Isaac Lab setup reached at about 76,000/s (RTX 4090).
+  the 702k-parameter network) at ``--train-envs`` environments, ours against Brax's PPO trainer
+  (``train.brax_peer``: same environment, network and batch shape): transitions per second with
+  the updates included, the figure the thesis's Isaac Lab setup reached at about 76,000/s (RTX 4090).
+
+The command exits with status 1 if our ray-caster or our trainer is slower than its peer in this
+run, or if the casters disagree: ``--quick`` is the CI check of exactly that.
 
 Timings: each function is compiled and run once (compile time reported separately), then run
 ``--repeats`` times, alternating ours and the peer; the median is reported.
@@ -20,6 +26,7 @@ Timings: each function is compiled and run once (compile time reported separatel
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -216,27 +223,133 @@ def bench_envs(sizes: list[int], repeats: int, log) -> list[dict]:
     return rows
 
 
-def bench_train(num_envs: int, repeats: int, log) -> dict:
+def bench_scaling(env_counts: list[int], obstacle_counts: list[int], repeats: int, log) -> dict:
+    """``su`` env steps per second against the number of environments (default floors) and against
+    the number of obstacles per floor (half cylinders, half boxes/triangles, plus 4 walls) at the
+    largest count that fits 2,048 environments."""
+    import envs
+    from envs.nav import ENV_FLOORS
+
+    def rate(n: int, **overrides) -> float:
+        env = envs.make("su", motion="sample", **overrides)
+        state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(n), n))
+        step = jax.jit(jax.vmap(env.step))
+        _, times = _timed(step, (state, jnp.zeros((n, env.action_size))), repeats)
+        return n / statistics.median(times)
+
+    by_envs = []
+    for n in env_counts:
+        by_envs.append({"envs": n, "env_steps_per_s": rate(n)})
+        log(f"  scale  su {n:>6} envs:            {by_envs[-1]['env_steps_per_s']:>10,.0f} env-steps/s")
+    n = min(2048, max(env_counts))
+    by_obstacles = []
+    for k in obstacle_counts:
+        floor = dataclasses.replace(
+            ENV_FLOORS, num_circles=(k // 2, k // 2), num_polygons=(k - k // 2, k - k // 2)
+        )
+        by_obstacles.append({"obstacles": k, "envs": n, "env_steps_per_s": rate(n, floor=floor)})
+        log(
+            f"  scale  su {n:>6} envs, {k:>3} obstacles: "
+            f"{by_obstacles[-1]['env_steps_per_s']:>10,.0f} env-steps/s"
+        )
+    return {"by_envs": by_envs, "by_obstacles": by_obstacles}
+
+
+def plot_scaling(scaling: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.4))
+    e = scaling["by_envs"]
+    a.plot([r["envs"] for r in e], [r["env_steps_per_s"] for r in e], "o-")
+    a.set_xscale("log", base=2)
+    a.set_xlabel("environments")
+    a.set_ylabel("su env-steps/s")
+    o = scaling["by_obstacles"]
+    b.plot([r["obstacles"] for r in o], [r["env_steps_per_s"] for r in o], "o-")
+    b.set_xlabel(f"obstacles per floor (+4 walls), {o[0]['envs'] if o else 0} envs")
+    for ax in (a, b):
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"How cost grows ({machine()['device']})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
+    """Our PPO against Brax's on the ``su`` preset's environment and network, same batch shape.
+
+    Each side runs ``iterations`` PPO iterations per timed call (one ``lax.scan`` for ours, one
+    Brax "training epoch" for Brax's) and the median of ``repeats`` steady-state calls is
+    reported; the extra time of the calls before is the compile time. Brax compiles its epoch
+    twice (its second call sees the first's output types), so it gets two calls before timing.
+    Transitions/s include the updates."""
+    import functools
+
+    from brax.training.agents.ppo import train as brax_ppo
+
+    from train import brax_peer
     from train.presets import apply_overrides, preset
     from train.run import build
 
     config = apply_overrides(preset("su"), ["env.motion=sample", f"num_envs={num_envs}"])
-    trainer = build(config).trainer
-    state = jax.jit(trainer.init)(jax.random.key(0))
-    update = jax.jit(trainer.update)
-    c, times = _timed(lambda s: update(s)[1], (state,), repeats)
+    setup = build(config)
+    trainer, cfg = setup.trainer, config.ppo
     per = trainer.transitions_per_iteration
+    run = jax.jit(trainer.run, static_argnums=1)
+    state = jax.jit(trainer.init)(jax.random.key(0))
+    first, times = _timed(lambda s: run(s, iterations)[1], (state,), repeats)
+    ours_s = statistics.median(times)
+
+    brax_peer.patch_jax_for_brax()
+    epochs: list[float] = []  # Brax's own per-epoch wall times (it times each training epoch)
+    walltime = [0.0]
+
+    def progress(_, metrics):
+        epochs.append(float(metrics["training/walltime"]) - walltime[0])
+        walltime[0] = float(metrics["training/walltime"])
+
+    brax_ppo.train(
+        environment=setup.env,
+        num_timesteps=(repeats + 2) * iterations * per,
+        num_evals=repeats + 3,  # one epoch of `iterations` training steps between progress calls
+        run_evals=False,
+        episode_length=round(config.env.time_limit * 50),
+        num_envs=num_envs,
+        unroll_length=cfg.rollouts,
+        batch_size=num_envs // cfg.minibatches,
+        num_minibatches=cfg.minibatches,
+        num_updates_per_batch=cfg.epochs,
+        learning_rate=cfg.learning_rate,
+        entropy_cost=cfg.entropy_scale,
+        discounting=cfg.gamma,
+        gae_lambda=cfg.lam,
+        clipping_epsilon=cfg.ratio_clip,
+        max_grad_norm=cfg.grad_norm_clip,
+        normalize_observations=True,
+        network_factory=functools.partial(brax_peer.network_factory(setup.network_spec)),
+        seed=0,
+        progress_fn=progress,
+    )
+    brax_s = statistics.median(epochs[2:])
     row = {
         "preset": "su",
         "envs": num_envs,
         "transitions_per_iteration": per,
-        "iteration_s": statistics.median(times),
-        "transitions_per_s": per / statistics.median(times),
-        "compile_s": c,
+        "iterations_per_call": iterations,
+        "ours_transitions_per_s": iterations * per / ours_s,
+        "brax_transitions_per_s": iterations * per / brax_s,
+        "ours_compile_s": max(first - ours_s, 0.0),
+        "brax_compile_s": max(epochs[0] + epochs[1] - 2 * brax_s, 0.0),
     }
+    row["ratio_brax"] = row["ours_transitions_per_s"] / row["brax_transitions_per_s"]
     log(
-        f"  train    su {num_envs:>6} envs: {row['transitions_per_s']:>10,.0f} transitions/s "
-        f"(PPO iteration of {per:,} transitions in {row['iteration_s']:.1f} s, updates included)"
+        f"  train    su {num_envs:>6} envs: ours {row['ours_transitions_per_s']:>9,.0f} transitions/s   "
+        f"Brax PPO {row['brax_transitions_per_s']:>9,.0f}   ratio {row['ratio_brax']:4.1f}x   "
+        f"(updates included; compile {row['ours_compile_s']:.0f} s / {row['brax_compile_s']:.0f} s)"
     )
     return row
 
@@ -268,12 +381,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--train-envs", type=int, help="environments for the training section (default 2048)")
     p.add_argument("--repeats", type=int, help="timed runs per measurement")
     p.add_argument("--json", help="also write the results as JSON to this path")
+    p.add_argument(
+        "--scaling",
+        metavar="PNG",
+        help="also measure su env-steps/s at 256-16384 environments and 8-64 obstacles; plot to PNG",
+    )
     args = p.parse_args(argv)
-    sizes = args.sizes or ([64, 256] if args.quick else [64, 1024, 4096])
-    robots = args.robots or (512 if args.quick else 4096)
-    env_sizes = args.env_sizes or ([64, 256] if args.quick else [256, 2048, 8192])
+    sizes = args.sizes or ([64] if args.quick else [64, 1024, 4096])
+    robots = args.robots or (256 if args.quick else 4096)
+    env_sizes = args.env_sizes or ([64] if args.quick else [256, 2048, 8192])
     train_envs = args.train_envs or (16 if args.quick else 2048)
-    repeats = args.repeats or (3 if args.quick else 7)
+    repeats = args.repeats or (2 if args.quick else 7)
     if min(sizes) < 1 or robots < 1 or repeats < 1 or min(env_sizes) < 1 or train_envs < 1:
         p.error("--sizes, --env-sizes, --robots, --train-envs and --repeats must be positive")
 
@@ -292,19 +410,41 @@ def main(argv: list[str] | None = None) -> int:
         "robot": bench_robot(robots, repeats, log),
         "envs": bench_envs(env_sizes, repeats, log),
         # a PPO iteration is long: a few repeats give a stable median
-        "train": bench_train(train_envs, min(repeats, 3), log),
+        "train": bench_train(train_envs, 1 if args.quick else 2, min(repeats, 3), log),
     }
+    if args.scaling:
+        results["scaling"] = bench_scaling([256, 1024, 4096, 16384], [8, 16, 32, 64], repeats, log)
+        plot_scaling(results["scaling"], args.scaling)
+        log(f"  scaling plot written to {args.scaling}")
     results["peak_host_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     log(f"  peak host memory {results['peak_host_memory_mb']:.0f} MB")
-    bad = [r for r in results["lidar"] if r["rays_agreeing_1mm"] < 0.999]
-    if bad:
-        log(f"ERROR: only {100 * bad[0]['rays_agreeing_1mm']:.2f}% of rays agree with mjx.ray")
-        return 1
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=2)
         log(f"results written to {args.json}")
-    return 0
+    failures = checks(results)
+    for failure in failures:
+        log(f"FAILED: {failure}")
+    return 1 if failures else 0
+
+
+def checks(results: dict) -> list[str]:
+    """What must hold on any machine: equal answers from the casters, and ours no slower than
+    either peer measured in this process (ratios, not absolute times)."""
+    out = []
+    for r in results["lidar"]:
+        if r["rays_agreeing_1mm"] < 0.999:
+            out.append(
+                f"only {100 * r['rays_agreeing_1mm']:.2f}% of rays agree with mjx.ray at {r['floors']} floors"
+            )
+        if r["ratio"] < 1.0:
+            out.append(f"our ray-caster is slower than mjx.ray at {r['floors']} floors ({r['ratio']:.2f}x)")
+    train = results["train"]
+    if train["ratio_brax"] < 1.0:
+        out.append(
+            f"our PPO is slower than Brax's at {train['envs']} environments ({train['ratio_brax']:.2f}x)"
+        )
+    return out
 
 
 if __name__ == "__main__":
