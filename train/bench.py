@@ -374,7 +374,11 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--quick", action="store_true", help="small batches and few repeats (CI smoke)")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="the peer checks only (LiDAR vs mjx.ray, PPO vs Brax), small batches, few repeats (CI)",
+    )
     p.add_argument("--sizes", type=int, nargs="+", help="floor batch sizes for the LiDAR section")
     p.add_argument("--robots", type=int, help="fleet size for the robot section (default 4096)")
     p.add_argument("--env-sizes", type=int, nargs="+", help="batch sizes for the environment section")
@@ -403,15 +407,13 @@ def main(argv: list[str] | None = None) -> int:
         f"methd-jax bench on {info['device']} ({info['cpu_count']} CPUs), jax {info['jax']}, "
         f"mujoco {info['mujoco']}"
     )
-    results = {
-        "machine": info,
-        "lidar": bench_lidar(sizes, repeats, log),
-        "floors": bench_floors(max(sizes), repeats, log),
-        "robot": bench_robot(robots, repeats, log),
-        "envs": bench_envs(env_sizes, repeats, log),
-        # a PPO iteration is long: a few repeats give a stable median
-        "train": bench_train(train_envs, 1 if args.quick else 2, min(repeats, 3), log),
-    }
+    results = {"machine": info, "lidar": bench_lidar(sizes, repeats, log)}
+    if not args.quick:  # --quick: the two sections with a peer to check against, nothing else
+        results["floors"] = bench_floors(max(sizes), repeats, log)
+        results["robot"] = bench_robot(robots, repeats, log)
+        results["envs"] = bench_envs(env_sizes, repeats, log)
+    # a PPO iteration is long: a few repeats give a stable median
+    results["train"] = bench_train(train_envs, 1 if args.quick else 2, min(repeats, 3), log)
     if args.scaling:
         results["scaling"] = bench_scaling([256, 1024, 4096, 16384], [8, 16, 32, 64], repeats, log)
         plot_scaling(results["scaling"], args.scaling)
