@@ -106,7 +106,12 @@ def test_floor_and_robot_sections_measure_rates():
 @pytest.mark.slow
 def test_env_and_scaling_sections_measure_env_steps():
     rows = bench.bench_envs([4], 1, print)
-    assert [(r["env"], r["envs"]) for r in rows] == [("su", 4), ("nav", 4)]
+    assert [(r["env"], r["rays"], r["envs"]) for r in rows] == [
+        ("su", 720, 4),
+        ("su", 8, 4),
+        ("nav", 720, 4),
+        ("nav", 8, 4),
+    ]
     assert all(r["env_steps_per_s"] > 0 for r in rows)
     logged = []
     scaling = bench.bench_scaling([4, 8], [2, 6], 1, logged.append)
