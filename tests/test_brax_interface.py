@@ -16,7 +16,7 @@ from train import brax_peer
 @pytest.fixture
 def brax_on_new_jax(monkeypatch):
     """Brax 0.14 on jax 0.10: ``jax.device_put_replicated`` put back for this test only."""
-    monkeypatch.setattr(jax, "device_put_replicated", brax_peer._device_put_replicated, raising=False)
+    monkeypatch.setattr(jax, "device_put_replicated", brax_peer.device_put_replicated, raising=False)
 
 
 # su under Brax's trainer takes ~1.5 min of CI's 15; guide checks the same interface in CI and

@@ -290,8 +290,6 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
     reported; the extra time of the calls before is the compile time. Brax compiles its epoch
     twice (its second call sees the first's output types), so it gets two calls before timing.
     Transitions/s include the updates."""
-    import functools
-
     from brax.training.agents.ppo import train as brax_ppo
 
     from train import brax_peer
@@ -333,7 +331,7 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
         clipping_epsilon=cfg.ratio_clip,
         max_grad_norm=cfg.grad_norm_clip,
         normalize_observations=True,
-        network_factory=functools.partial(brax_peer.network_factory(setup.network_spec)),
+        network_factory=brax_peer.network_factory(setup.network_spec),
         seed=0,
         progress_fn=progress,
     )

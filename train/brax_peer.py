@@ -23,7 +23,7 @@ from jax.sharding import PartitionSpec as P
 import networks
 
 
-def _device_put_replicated(x, devices):
+def device_put_replicated(x, devices):
     """JAX's documented drop-in for the removed ``jax.device_put_replicated``."""
     sharding = NamedSharding(Mesh(np.array(devices), ("x",)), P("x"))
     return jax.tree.map(lambda y: jax.device_put(jnp.stack([y] * len(devices)), sharding), x)
@@ -35,7 +35,7 @@ def patch_jax_for_brax() -> None:
     try:
         jax.device_put_replicated  # noqa: B018
     except AttributeError:
-        jax.device_put_replicated = _device_put_replicated
+        jax.device_put_replicated = device_put_replicated
 
 
 def network_factory(spec: dict):

@@ -16,6 +16,7 @@ for example ``lab=true`` or ``motion=sample``).
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -66,10 +67,8 @@ def trimmed(rollout: viz.Rollout, tail: int = 25) -> viz.Rollout:
     if not rollout.done.any():
         return rollout
     end = min(int(np.argmax(rollout.done)) + tail + 1, rollout.num_steps)
-    cut = {
-        k: (v[:end] if isinstance(v, np.ndarray) and k != "floor" else v) for k, v in vars(rollout).items()
-    }
-    return viz.Rollout(**cut)
+    arrays = {k: v[:end] for k, v in vars(rollout).items() if isinstance(v, np.ndarray)}
+    return dataclasses.replace(rollout, **arrays)
 
 
 def key_step(rollout: viz.Rollout) -> int:

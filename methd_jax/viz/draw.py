@@ -70,7 +70,7 @@ class _Artists:
         self.r = rollout
         plot = ax.plot
         self.trail = [
-            plot([], [], "-", color=USER_COLOURS[j % 4], lw=0.8, alpha=0.5)[0]
+            plot([], [], "-", color=USER_COLOURS[j % len(USER_COLOURS)], lw=0.8, alpha=0.5)[0]
             for j in range(rollout.num_users)
         ]
         self.users = []
@@ -172,8 +172,7 @@ def animate(
     from matplotlib import animation
 
     path = Path(path)
-    if stride < 1:
-        raise ValueError(f"stride must be at least 1, got {stride}")
+    steps = rollout.strided(stride)
     suffix = path.suffix.lower()
     if suffix == ".gif":
         writer_cls = animation.PillowWriter
@@ -185,9 +184,6 @@ def animate(
         writer_cls = animation.FFMpegWriter
     else:
         raise ValueError(f"{path}: animations are written as .gif or .mp4")
-    steps = list(range(0, rollout.num_steps, stride))
-    if steps[-1] != rollout.num_steps - 1:
-        steps.append(rollout.num_steps - 1)
     dt = float(rollout.t[1] - rollout.t[0]) if rollout.num_steps > 1 else 0.02
     fps = fps or max(1, round(1.0 / (dt * stride)))
     fig, artists = _figure(rollout, size, dpi)

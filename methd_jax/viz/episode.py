@@ -59,6 +59,13 @@ class Rollout:
     def num_users(self) -> int:
         return self.users.shape[1]
 
+    def strided(self, stride: int) -> list[int]:
+        """Every ``stride``-th step and the last: the steps an animation or an export shows."""
+        if stride < 1:
+            raise ValueError(f"stride must be at least 1, got {stride}")
+        steps = list(range(0, self.num_steps, stride))
+        return steps if steps[-1] == self.num_steps - 1 else [*steps, self.num_steps - 1]
+
     def hits(self, i: int) -> np.ndarray:
         """(K, 2) world points of the LiDAR returns at step ``i``. Rays read within ``HIT_MARGIN``
         of the clamp are taken as misses: the observation's noise scatters the clamp by a few cm."""
@@ -123,9 +130,10 @@ def record(
         first = snapshot(state)
         state, rest = jax.lax.scan(body, state, None, length=steps)
         rows = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
-        return rows, state.pipeline_state.requester, state.pipeline_state
+        w = state.pipeline_state
+        return rows, w.requester, (w.floor if is_nav else None)
 
-    rows, requester, world = run(key)
+    rows, requester, floor = run(key)
     rows = {k: np.asarray(v) for k, v in rows.items()}
     outcome = "running"
     if rows["done"].any():
@@ -137,7 +145,6 @@ def record(
             outcome = "success"
     if is_nav:
         cfg = env.config
-        floor = jax.tree.map(np.asarray, world.floor)
         extra = {
             "robot": rows["robot"],
             "goal": rows["goal"],
@@ -148,6 +155,7 @@ def record(
             "u_w": rows["u_w"] if cfg.num_users == 2 else None,
         }
         name = "su" if cfg.num_users == 1 else "nav"
+        floor = jax.tree.map(np.asarray, floor)
     else:  # GuideRL has no floor; its users walk in the lab twin, where the motion data lives
         floor = jax.tree.map(np.asarray, floors.lab())
         extra = {"u_w": rows["u_w"]}

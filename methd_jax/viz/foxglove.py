@@ -223,13 +223,9 @@ def _pose_in_frame(stamp: Timestamp, pose: np.ndarray) -> PoseInFrame:
 def to_mcap(rollout: Rollout, path: str | Path, *, stride: int = 1) -> Path:
     """Writes every ``stride``-th step (and the last) of ``rollout`` to ``path`` (see the module
     docstring for the channels); returns the path."""
-    if stride < 1:
-        raise ValueError(f"stride must be at least 1, got {stride}")
+    steps = rollout.strided(stride)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    steps = list(range(0, rollout.num_steps, stride))
-    if steps[-1] != rollout.num_steps - 1:
-        steps.append(rollout.num_steps - 1)
     with path.open("wb") as f, Writer(f) as writer:
         writer.write_message("/floor", floor_update(rollout), log_time=0, publish_time=0)
         for i in steps:
