@@ -52,28 +52,31 @@ def test_bench_quick_checks_ratios_against_the_peers(tmp_path):
         timeout=600,
     )
     assert run.returncode == 0, run.stdout + run.stderr
-    assert "mjx.ray" in run.stdout and "Brax PPO" in run.stdout
+    assert "mjx.ray" in run.stdout and "Brax PPO" in run.stdout and "skrl PPO" in run.stdout
     res = json.loads(out.read_text())
     assert set(res) == {"machine", "lidar", "train", "peak_host_memory_mb"}
     (row,) = res["lidar"]
     assert row["floors"] == 64 and row["ratio"] >= 1.0 and row["rays_agreeing_1mm"] >= 0.999
     train = res["train"]
     assert train["envs"] == 16 and train["transitions_per_iteration"] == 16 * 48
-    assert train["ratio_brax"] == pytest.approx(
-        train["ours_transitions_per_s"] / train["brax_transitions_per_s"]
-    )
-    assert train["ratio_brax"] >= 1.0 and train["brax_compile_s"] > 0
+    for peer in ("brax", "skrl"):
+        assert train[f"ratio_{peer}"] == pytest.approx(
+            train["ours_transitions_per_s"] / train[f"{peer}_transitions_per_s"]
+        )
+        assert train[f"ratio_{peer}"] >= 1.0 and train[f"{peer}_compile_s"] > 0
+    assert train["skrl_updated_both_heads"]
 
 
 def test_bench_checks_fail_when_a_peer_is_faster():
     lidar = {"floors": 64, "ratio": 0.8, "rays_agreeing_1mm": 0.99}
-    results = {"lidar": [lidar], "train": {"envs": 16, "ratio_brax": 0.9}}
+    results = {"lidar": [lidar], "train": {"envs": 16, "ratio_brax": 0.9, "ratio_skrl": 0.5}}
     failures = bench.checks(results)
-    assert len(failures) == 3
+    assert len(failures) == 4
     assert "slower than mjx.ray" in failures[1] and "slower than Brax's" in failures[2]
+    assert "slower than skrl's at 16 environments (0.50x)" in failures[3]
     results = {
         "lidar": [lidar | {"ratio": 3.0, "rays_agreeing_1mm": 1.0}],
-        "train": {"envs": 16, "ratio_brax": 1.2},
+        "train": {"envs": 16, "ratio_brax": 1.2, "ratio_skrl": 2.5},
     }
     assert bench.checks(results) == []
 

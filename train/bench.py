@@ -14,10 +14,11 @@ Sections (each timed in this one process, on whatever JAX device is default):
   64 obstacles per floor, plotted.
 * ``train``: PPO iterations of the ``su`` preset (Table 4.4: 48 rollouts, 5 epochs x 8 minibatches,
   the 702k-parameter network) at ``--train-envs`` environments, ours against Brax's PPO trainer
-  (``train.brax_peer``: same environment, network and batch shape): transitions per second with
-  the updates included, the figure the thesis's Isaac Lab setup reached at about 76,000/s (RTX 4090).
+  (``train.brax_peer``) and skrl's JAX PPO (``train.skrl_peer``, the thesis's trainer library),
+  each on the same environment, network and batch shape: transitions per second with the updates
+  included, the figure the thesis's Isaac Lab setup reached at about 76,000/s (RTX 4090).
 
-The command exits with status 1 if our ray-caster or our trainer is slower than its peer in this
+The command exits with status 1 if our ray-caster or our trainer is slower than a peer in this
 run, or if the casters disagree: ``--quick`` is the CI check of exactly that.
 
 Timings: each function is compiled and run once (compile time reported separately), then run
@@ -283,16 +284,18 @@ def plot_scaling(scaling: dict, path: str) -> None:
 
 
 def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
-    """Our PPO against Brax's on the ``su`` preset's environment and network, same batch shape.
+    """Our PPO against Brax's and skrl's on the ``su`` preset's environment and network, same
+    batch shape.
 
     Each side runs ``iterations`` PPO iterations per timed call (one ``lax.scan`` for ours, one
-    Brax "training epoch" for Brax's) and the median of ``repeats`` steady-state calls is
-    reported; the extra time of the calls before is the compile time. Brax compiles its epoch
-    twice (its second call sees the first's output types), so it gets two calls before timing.
+    Brax "training epoch" for Brax's, ``iterations`` calls of skrl's trainer for skrl's) and the
+    median of ``repeats`` steady-state calls is reported; the extra time of the calls before is
+    the compile time. Brax compiles its epoch twice (its second call sees the first's output
+    types) and skrl its update only on its second iteration, so both get two calls before timing.
     Transitions/s include the updates."""
     from brax.training.agents.ppo import train as brax_ppo
 
-    from train import brax_peer
+    from train import brax_peer, skrl_peer
     from train.presets import apply_overrides, preset
     from train.run import build
 
@@ -336,6 +339,14 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
         progress_fn=progress,
     )
     brax_s = statistics.median(epochs[2:])
+
+    # skrl compiles its pieces over its first two iterations (the update's on the second)
+    skrl = skrl_peer.make(setup.env, setup.network_spec, cfg, num_envs, round(config.env.time_limit * 50))
+    before = {role: skrl.head(role) for role in ("policy", "value")}
+    skrl_times = [sum(skrl.iteration() for _ in range(iterations)) for _ in range(repeats + 2)]
+    # a misconfigured skrl (say, an update never reached) would look fast: check both heads learned
+    updated = all(bool(jnp.any(before[role] != skrl.head(role))) for role in before)
+    skrl_s = statistics.median(skrl_times[2:])
     row = {
         "preset": "su",
         "envs": num_envs,
@@ -345,12 +356,18 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
         "brax_transitions_per_s": iterations * per / brax_s,
         "ours_compile_s": max(first - ours_s, 0.0),
         "brax_compile_s": max(epochs[0] + epochs[1] - 2 * brax_s, 0.0),
+        "skrl_transitions_per_s": iterations * per / skrl_s,
+        "skrl_compile_s": max(skrl_times[0] + skrl_times[1] - 2 * skrl_s, 0.0),
+        "skrl_updated_both_heads": updated,
     }
     row["ratio_brax"] = row["ours_transitions_per_s"] / row["brax_transitions_per_s"]
+    row["ratio_skrl"] = row["ours_transitions_per_s"] / row["skrl_transitions_per_s"]
     log(
         f"  train    su {num_envs:>6} envs: ours {row['ours_transitions_per_s']:>9,.0f} transitions/s   "
-        f"Brax PPO {row['brax_transitions_per_s']:>9,.0f}   ratio {row['ratio_brax']:4.1f}x   "
-        f"(updates included; compile {row['ours_compile_s']:.0f} s / {row['brax_compile_s']:.0f} s)"
+        f"Brax PPO {row['brax_transitions_per_s']:>9,.0f} ({row['ratio_brax']:.1f}x)   "
+        f"skrl PPO {row['skrl_transitions_per_s']:>9,.0f} ({row['ratio_skrl']:.1f}x)   (updates included; "
+        f"compile {row['ours_compile_s']:.0f} s / {row['brax_compile_s']:.0f} s / "
+        f"{row['skrl_compile_s']:.0f} s)"
     )
     return row
 
@@ -378,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--quick",
         action="store_true",
-        help="the peer checks only (LiDAR vs mjx.ray, PPO vs Brax), small batches, few repeats (CI)",
+        help="the peer checks only (LiDAR vs mjx.ray, PPO vs Brax and skrl), small batches, few repeats (CI)",
     )
     p.add_argument("--sizes", type=int, nargs="+", help="floor batch sizes for the LiDAR section")
     p.add_argument("--robots", type=int, help="fleet size for the robot section (default 4096)")
@@ -443,10 +460,10 @@ def checks(results: dict) -> list[str]:
         if r["ratio"] < 1.0:
             out.append(f"our ray-caster is slower than mjx.ray at {r['floors']} floors ({r['ratio']:.2f}x)")
     train = results["train"]
-    if train["ratio_brax"] < 1.0:
-        out.append(
-            f"our PPO is slower than Brax's at {train['envs']} environments ({train['ratio_brax']:.2f}x)"
-        )
+    for peer, name in (("brax", "Brax's"), ("skrl", "skrl's")):
+        ratio = train[f"ratio_{peer}"]
+        if ratio < 1.0:
+            out.append(f"our PPO is slower than {name} at {train['envs']} environments ({ratio:.2f}x)")
     return out
 
 
