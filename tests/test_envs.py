@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import envs
+from envs import guide as guide_lib
 from envs.nav import observation_layout
 from methd_jax import floors, motion
 from methd_jax import robot as robot_lib
@@ -311,24 +312,47 @@ def test_guide_rewards_and_accuracy(bank):
     def run(policy, key):
         state = jax.jit(env.reset)(key)
         step = jax.jit(env.step)
-        total, acc = 0.0, None
+        acc = None
         for _ in range(4000):
             state = step(state, policy(state))
-            total += float(state.reward)
             if float(state.metrics["at_request"]):
                 acc = float(state.metrics["correct_at_request"])
             if float(state.done):
-                return total, acc, state
+                return acc, state
         raise AssertionError("guide episode did not end")
 
-    total_oracle, acc_oracle, end = run(oracle, jax.random.key(3))
-    total_zero, acc_zero, _ = run(lambda s: jnp.zeros(1), jax.random.key(3))
+    acc_oracle, end = run(oracle, jax.random.key(3))
+    acc_zero, _ = run(lambda s: jnp.zeros(1), jax.random.key(3))
     assert acc_oracle == 1.0 and acc_zero == 0.0  # u_w = 0 has no sign
     assert abs(float(end.pipeline_state.u_w)) == 1.0
-    # r_c = 20 per step of the 5 s cooldown beats r_m = 5 per step for staying central
-    assert total_oracle > total_zero
     r = float(end.metrics["reward/correct"])
     assert r == pytest.approx(20.0)
+
+
+def test_guide_pays_the_midpoint_until_the_intent_shows_and_the_choice_after(bank):
+    env = envs.make("guide", bank=bank)
+    settled, request = guide_lib.settled_steps(bank), np.asarray(bank.request_step)
+    speed = np.linalg.norm(np.asarray(bank.vel_world)[..., :2], axis=-1)
+    for i in range(bank.num_trajectories):  # still from the final stop to the request, moving before
+        assert 0 < settled[i] < request[i] and request[i] - settled[i] >= 25
+        assert speed[i, settled[i] : request[i]].max() <= guide_lib.SETTLED_SPEED
+        assert speed[i, settled[i] - 1] > guide_lib.SETTLED_SPEED
+
+    state = jax.jit(env.reset)(jax.random.key(2))
+    w = state.pipeline_state
+    assert 0 <= int(w.t) <= max(int(w.request_step) - guide_lib.START_LEAD * 50, 0)
+    step = jax.jit(env.step)
+    rows = []
+    while not float(state.done):  # one nudge, then u_w holds at 0.015
+        state = step(state, jnp.full(1, 0.3 if not rows else 0.0))
+        rows.append((int(state.pipeline_state.t), float(state.metrics["reward/midpoint"])))
+    t, r_m = np.array(rows).T
+    u_w = float(state.pipeline_state.u_w)
+    intent = int(w.intent_step)
+    assert intent == settled[int(w.users[int(w.requester)])]
+    assert np.all(r_m[t >= intent] == 0.0) and np.all(r_m[t < intent] == pytest.approx(5 * (1 - 4 * 0.015)))
+    sign = -1.0 if int(w.requester) == 0 else 1.0
+    assert float(state.metrics["reward/correct"]) == pytest.approx(20.0 * sign * u_w)
 
 
 def test_make_rejects_bad_options(bank):

@@ -74,15 +74,14 @@ def test_su_policy_learns_to_approach_the_hip(tmp_path):
     assert d_trained < 0.75 * d_random
 
 
-def test_guide_policy_learns_and_a_stillness_rule_shows_the_task_is_solvable(tmp_path):
-    """GuideRL in CI's budget learns the midpoint reward (beats random acting); picking the requesting
-    user, which the thesis reached after ~200M transitions, is out of this budget: the accuracy is
-    printed, and a scripted rule (turn toward the user standing still) shows the synthetic data
-    carries the signal (>= 90% at the request)."""
+def test_guide_policy_learns_to_pick_the_requesting_user(tmp_path):
+    """GuideRL in CI's budget (2M transitions; the thesis trained on ~200M) picks the requesting
+    user at >= 90% of requests and beats random acting; a scripted rule (turn toward the user
+    standing still) shows what the data allows."""
     motion.save(tmp_path / "bags", motion.synthesize(40, seed=3))
     config = apply_overrides(
         preset("guide"),
-        [f"env.motion={tmp_path / 'bags'}", "env.split=all", "num_envs=512", "timesteps=1920"],
+        [f"env.motion={tmp_path / 'bags'}", "env.split=all", "num_envs=1024", "timesteps=1920"],
     )
     out = train(config, tmp_path / "run", progress=False)
     setup = build(config)
@@ -103,3 +102,4 @@ def test_guide_policy_learns_and_a_stillness_rule_shows_the_task_is_solvable(tmp
     assert results["trained"][0] > results["random"][0] + 1.0
     assert results["still_user"][1]["at_request"].sum() >= 64
     assert accuracy["still_user"] >= 0.9
+    assert accuracy["trained"] >= 0.9 and accuracy["random"] < 0.7
