@@ -23,6 +23,29 @@ def tiny(*extra):
     return apply_overrides(preset("quick"), [*TINY, *extra])
 
 
+# The trainer's guarantees do not depend on the environment: the default suite checks them on
+# GuideRL (kinematic, compiles in a third of the time), the slow set on SU's MJX and LiDAR as well.
+TINY_GUIDE = (
+    "env.motion=sample",
+    "hidden=32,32",
+    "num_envs=8",
+    "ppo.rollouts=4",
+    "ppo.minibatches=2",
+    "ppo.epochs=2",
+)
+ENVS = [
+    pytest.param("guide", TINY_GUIDE, ("actor", "hidden0"), id="guide"),
+    pytest.param("quick", TINY, ("body0",), id="su", marks=pytest.mark.slow),
+]
+
+
+def _kernel(state, layer):
+    p = state.params["params"]
+    for name in layer:
+        p = p[name]
+    return p["kernel"]
+
+
 def test_gae_matches_a_python_loop():
     rng = np.random.default_rng(0)
     T, N, gamma, lam = 9, 4, 0.97, 0.9
@@ -104,14 +127,15 @@ def test_kl_adaptive_learning_rate_follows_skrl():
     assert float(ppo.adapt_learning_rate(1.2e-4, 1.0, cfg)) == pytest.approx(1e-4)  # floored
 
 
-def test_train_is_pure_and_vmaps_over_seeds():
-    trainer = build(tiny()).trainer
+@pytest.mark.parametrize("name, overrides, layer", ENVS)
+def test_train_is_pure_and_vmaps_over_seeds(name, overrides, layer):
+    trainer = build(apply_overrides(preset(name), list(overrides))).trainer
     keys = jax.random.split(jax.random.key(3), 2)
     batched, metrics = jax.jit(jax.vmap(lambda k: trainer.train(k, 2)))(keys)
     single = jax.jit(lambda k: trainer.train(k, 2))
     one, _ = single(keys[1])
     again, _ = single(keys[1])
-    leaf = lambda s: s.params["params"]["body0"]["kernel"]  # noqa: E731
+    leaf = lambda s: _kernel(s, layer)  # noqa: E731
     np.testing.assert_array_equal(leaf(one), leaf(again))
     np.testing.assert_allclose(leaf(batched)[1], leaf(one), rtol=1e-4, atol=1e-5)
     assert not np.allclose(leaf(batched)[0], leaf(batched)[1])
@@ -158,19 +182,20 @@ def test_a_non_finite_update_keeps_the_last_good_checkpoint(tmp_path, monkeypatc
     assert not (tmp_path / "policy").exists()  # nothing is exported from a broken run
 
 
-def test_sharding_over_two_devices_matches_one(tmp_path):
+@pytest.mark.parametrize("name, overrides, layer", ENVS)
+def test_sharding_over_two_devices_matches_one(name, overrides, layer):
     script = textwrap.dedent(
         f"""
         import jax, numpy as np
         from train.presets import apply_overrides, preset
         from train.run import build
         assert len(jax.devices()) == 2, jax.devices()
-        config = apply_overrides(preset("quick"), {list(TINY)!r})
+        config = apply_overrides(preset({name!r}), {list(overrides)!r})
         out = []
         for devices in (jax.devices()[:1], jax.devices()):
             trainer = build(config, devices=devices).trainer
             state, m = jax.jit(lambda k: trainer.train(k, 2))(jax.random.key(0))
-            kernel = state.params["params"]["body0"]["kernel"]
+            kernel = state.params["params"]{"".join(f"[{n!r}]" for n in layer)}["kernel"]
             out.append(np.asarray(kernel))
             if len(devices) == 2:
                 assert len(state.env_state.obs.sharding.device_set) == 2, state.env_state.obs.sharding

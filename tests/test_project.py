@@ -58,7 +58,9 @@ def test_bench_quick_checks_ratios_against_the_peers(tmp_path):
     (row,) = res["lidar"]
     assert row["floors"] == 64 and row["ratio"] >= 1.0 and row["rays_agreeing_1mm"] >= 0.999
     train = res["train"]
-    assert train["envs"] == 16 and train["transitions_per_iteration"] == 16 * 48
+    assert (
+        train["preset"] == "quick" and train["envs"] == 64 and train["transitions_per_iteration"] == 64 * 32
+    )
     for peer in ("brax", "skrl"):
         assert train[f"ratio_{peer}"] == pytest.approx(
             train["ours_transitions_per_s"] / train[f"{peer}_transitions_per_s"]

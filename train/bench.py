@@ -283,9 +283,10 @@ def plot_scaling(scaling: dict, path: str) -> None:
     plt.close(fig)
 
 
-def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
-    """Our PPO against Brax's and skrl's on the ``su`` preset's environment and network, same
-    batch shape.
+def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: str = "su") -> dict:
+    """Our PPO against Brax's and skrl's on a preset's environment, network and batch shape (the
+    thesis's ``su`` by default; ``--quick`` uses the ``quick`` preset's small network, which
+    compiles in a fraction of the time).
 
     Each side runs ``iterations`` PPO iterations per timed call (one ``lax.scan`` for ours, one
     Brax "training epoch" for Brax's, ``iterations`` calls of skrl's trainer for skrl's) and the
@@ -299,7 +300,7 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
     from train.presets import apply_overrides, preset
     from train.run import build
 
-    config = apply_overrides(preset("su"), ["env.motion=sample", f"num_envs={num_envs}"])
+    config = apply_overrides(preset(preset_name), ["env.motion=sample", f"num_envs={num_envs}"])
     setup = build(config)
     trainer, cfg = setup.trainer, config.ppo
     per = trainer.transitions_per_iteration
@@ -348,7 +349,7 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
     updated = all(bool(jnp.any(before[role] != skrl.head(role))) for role in before)
     skrl_s = statistics.median(skrl_times[2:])
     row = {
-        "preset": "su",
+        "preset": preset_name,
         "envs": num_envs,
         "transitions_per_iteration": per,
         "iterations_per_call": iterations,
@@ -363,7 +364,8 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log) -> dict:
     row["ratio_brax"] = row["ours_transitions_per_s"] / row["brax_transitions_per_s"]
     row["ratio_skrl"] = row["ours_transitions_per_s"] / row["skrl_transitions_per_s"]
     log(
-        f"  train    su {num_envs:>6} envs: ours {row['ours_transitions_per_s']:>9,.0f} transitions/s   "
+        f"  train {preset_name:>5} {num_envs:>6} envs: "
+        f"ours {row['ours_transitions_per_s']:>9,.0f} transitions/s   "
         f"Brax PPO {row['brax_transitions_per_s']:>9,.0f} ({row['ratio_brax']:.1f}x)   "
         f"skrl PPO {row['skrl_transitions_per_s']:>9,.0f} ({row['ratio_skrl']:.1f}x)   (updates included; "
         f"compile {row['ours_compile_s']:.0f} s / {row['brax_compile_s']:.0f} s / "
@@ -412,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
     sizes = args.sizes or ([64] if args.quick else [64, 1024, 4096])
     robots = args.robots or (256 if args.quick else 4096)
     env_sizes = args.env_sizes or ([64] if args.quick else [256, 2048, 8192])
-    train_envs = args.train_envs or (16 if args.quick else 2048)
+    train_envs = args.train_envs or (64 if args.quick else 2048)
     repeats = args.repeats or (2 if args.quick else 7)
     if min(sizes) < 1 or robots < 1 or repeats < 1 or min(env_sizes) < 1 or train_envs < 1:
         p.error("--sizes, --env-sizes, --robots, --train-envs and --repeats must be positive")
@@ -431,7 +433,9 @@ def main(argv: list[str] | None = None) -> int:
         results["robot"] = bench_robot(robots, repeats, log)
         results["envs"] = bench_envs(env_sizes, repeats, log)
     # a PPO iteration is long: a few repeats give a stable median
-    results["train"] = bench_train(train_envs, 1 if args.quick else 2, min(repeats, 3), log)
+    results["train"] = bench_train(
+        train_envs, 1 if args.quick else 2, min(repeats, 3), log, "quick" if args.quick else "su"
+    )
     if args.scaling:
         results["scaling"] = bench_scaling([256, 1024, 4096, 16384], [8, 16, 32, 64], repeats, log)
         plot_scaling(results["scaling"], args.scaling)
