@@ -75,7 +75,7 @@ class GuideConfig:
 @struct.dataclass
 class GuideWorld:
     users: jax.Array  # (2,) int32 trajectories
-    t: jax.Array  # () int32 control steps since reset
+    t: jax.Array  # () int32 playhead in both trajectories, control steps (starts at a random step)
     request_step: jax.Array  # () int32 the first user's request
     intent_step: jax.Array  # () int32 the requester's final stop
     requester: jax.Array  # () int32 0 or 1

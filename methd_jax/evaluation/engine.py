@@ -466,8 +466,8 @@ class Engine:
 
     def trace(self, schedule: Schedule, key: jax.Array, steps: int) -> tuple[dict[str, np.ndarray], dict]:
         """The first ``steps`` steps, recorded: per step the episode, behaviour, robot pose, users'
-        positions and presence, and the playhead direction (for plots and animations); plus the
-        results so far."""
+        positions and presence, the playhead direction and the contacts (obstacle, user), for
+        plots, animations and finding where collisions happen; plus the results so far."""
 
         def body(s, _):
             s = self.step(s, schedule)
@@ -480,6 +480,7 @@ class Engine:
                 )["pose"],
                 "present": s.present,
                 "direction": s.direction,
+                "touching": s.touching,  # obstacle, user contact
             }
             return s, rec
 
