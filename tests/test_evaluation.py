@@ -206,6 +206,17 @@ def test_metrics_of_a_hand_made_episode():
     assert res["duration"][0] == pytest.approx(req / 50 + res["t_pos"][0] + 3.3, abs=0.1)
 
 
+def test_a_contact_that_lasts_across_episodes_counts_once():
+    # the base starts with its nose in a post and Static never moves it; the user walks far off and
+    # never requests, so each episode ends at its (shortened) limit with the base still touching
+    post = open_floor(circles=[(0.0, 0.0, 0.5)])
+    traj = walk([(-4.0, 4.0), (-3.0, 4.0)], [1.0], request_at_end=False, hold=5.0)
+    cfg = E.EngineConfig(episode_limit=2.0)
+    res, _ = run(M.Static(), [traj, traj], post, (1.0, 0.0, 0.0), cfg=cfg)
+    assert res["collisions_obstacle"].tolist() == [1.0, 0.0]
+    assert res["collisions_user"].tolist() == [0.0, 0.0]
+
+
 def test_summary_and_table():
     r = {
         "request_time": np.array([1.0, 2.0, np.nan]),

@@ -306,7 +306,9 @@ class Engine:
             nav_command=jnp.where(reset, 0.0, s.nav_command),
             plan_goal=jnp.full(3, jnp.inf),
             method=self.method.init(),
-            touching=jnp.zeros(2, bool),
+            # a base that stays where it is and stays in contact is one collision, not one per
+            # episode; a new user is a new contact
+            touching=jnp.stack([s.touching[0] & ~reset, jnp.bool_(False)]),
         )
 
     # -- one step --------------------------------------------------------------------------------
