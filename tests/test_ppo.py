@@ -25,14 +25,7 @@ def tiny(*extra):
 
 # The trainer's guarantees do not depend on the environment: the default suite checks them on
 # GuideRL (kinematic, compiles in a third of the time), the slow set on SU's MJX and LiDAR as well.
-TINY_GUIDE = (
-    "env.motion=sample",
-    "hidden=32,32",
-    "num_envs=8",
-    "ppo.rollouts=4",
-    "ppo.minibatches=2",
-    "ppo.epochs=2",
-)
+TINY_GUIDE = tuple(o for o in TINY_RUN if not o.startswith("env.num_rays"))  # GuideRL has no LiDAR
 ENVS = [
     pytest.param("guide", TINY_GUIDE, ("actor", "hidden0"), id="guide"),
     pytest.param("quick", TINY, ("body0",), id="su", marks=pytest.mark.slow),

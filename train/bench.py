@@ -13,10 +13,11 @@ Sections (each timed in this one process, on whatever JAX device is default):
 * ``scaling`` (``--scaling PNG``): ``su`` env steps/s at 256 to 16,384 environments and with 8 to
   64 obstacles per floor, plotted.
 * ``train``: PPO iterations of the ``su`` preset (Table 4.4: 48 rollouts, 5 epochs x 8 minibatches,
-  the 702k-parameter network) at ``--train-envs`` environments, ours against Brax's PPO trainer
-  (``train.brax_peer``) and skrl's JAX PPO (``train.skrl_peer``, the thesis's trainer library),
-  each on the same environment, network and batch shape: transitions per second with the updates
-  included, the figure the thesis's Isaac Lab setup reached at about 76,000/s (RTX 4090).
+  the 702k-parameter network; ``--quick``: the ``quick`` preset's) at ``--train-envs`` environments,
+  ours against Brax's PPO trainer (``train.brax_peer``) and skrl's JAX PPO (``train.skrl_peer``,
+  the thesis's trainer library), each on the same environment, network and batch shape:
+  transitions per second with the updates included, the figure the thesis's Isaac Lab setup
+  reached at about 76,000/s (RTX 4090).
 
 The command exits with status 1 if our ray-caster or our trainer is slower than a peer in this
 run, or if the casters disagree: ``--quick`` is the CI check of exactly that.
@@ -46,6 +47,7 @@ from mujoco import mjx
 
 from methd_jax import floors as floors_lib
 from methd_jax import lidar, robot
+from methd_jax.motion.features import CONTROL_HZ
 
 BENCH_FLOORS = floors_lib.FloorConfig(triangle_fraction=0.0)
 """28 obstacles: 12 cylinders, 12 rotated boxes, 4 walls (boxes, so MJX can batch the scenes)."""
@@ -292,7 +294,8 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     Brax "training epoch" for Brax's, ``iterations`` calls of skrl's trainer for skrl's) and the
     median of ``repeats`` steady-state calls is reported; the extra time of the calls before is
     the compile time. Brax compiles its epoch twice (its second call sees the first's output
-    types) and skrl its update only on its second iteration, so both get two calls before timing.
+    types) and skrl's second iteration is still slower than the ones after (3.0 s against 1.7 s at 16
+    environments), so both get two calls before timing.
     Transitions/s include the updates."""
     from brax.training.agents.ppo import train as brax_ppo
 
@@ -304,6 +307,7 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     setup = build(config)
     trainer, cfg = setup.trainer, config.ppo
     per = trainer.transitions_per_iteration
+    episode_length = round(config.env.time_limit * CONTROL_HZ)
     run = jax.jit(trainer.run, static_argnums=1)
     state = jax.jit(trainer.init)(jax.random.key(0))
     first, times = _timed(lambda s: run(s, iterations)[1], (state,), repeats)
@@ -322,7 +326,7 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
         num_timesteps=(repeats + 2) * iterations * per,
         num_evals=repeats + 3,  # one epoch of `iterations` training steps between progress calls
         run_evals=False,
-        episode_length=round(config.env.time_limit * 50),
+        episode_length=episode_length,
         num_envs=num_envs,
         unroll_length=cfg.rollouts,
         batch_size=num_envs // cfg.minibatches,
@@ -341,8 +345,7 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     )
     brax_s = statistics.median(epochs[2:])
 
-    # skrl compiles its pieces over its first two iterations (the update's on the second)
-    skrl = skrl_peer.make(setup.env, setup.network_spec, cfg, num_envs, round(config.env.time_limit * 50))
+    skrl = skrl_peer.make(setup.env, setup.network_spec, cfg, num_envs, episode_length)
     before = {role: skrl.head(role) for role in ("policy", "value")}
     skrl_times = [sum(skrl.iteration() for _ in range(iterations)) for _ in range(repeats + 2)]
     # a misconfigured skrl (say, an update never reached) would look fast: check both heads learned
