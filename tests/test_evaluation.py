@@ -117,6 +117,34 @@ def test_navigator_reaches_goal_round_a_wall():
     assert speed.max() <= cfg.max_speed + 0.05
 
 
+def test_guard_agrees_with_the_deployment_monitor():
+    # the deployment's numpy collision monitor is the independent implementation of the same sweep
+    from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
+    from methd_jax.geometry import KAIROS
+
+    cfg = nav.NavigatorConfig()
+    monitor = CollisionMonitor(
+        KAIROS.length, KAIROS.width, 720, 1.37, SafetyConfig(horizon=cfg.guard_horizon, time_step=nav.DT)
+    )
+    guard = jax.jit(jax.vmap(lambda c, r: nav.guard(c, r, cfg)))
+    rng = np.random.default_rng(2)
+    ranges = rng.uniform(0.5, 5.0, (200, 720)).astype(np.float32)
+    density = rng.uniform(0.0, 0.05, (200, 1))  # from open floor to clutter
+    ranges[rng.uniform(size=ranges.shape) > density] = np.inf
+    commands = rng.uniform([-2, -2, -1.5], [2, 2, 1.5], (200, 3)).astype(np.float32)
+    commands[:20, 2] = 0.0  # straight lines too
+    ours = np.asarray(guard(jnp.asarray(commands), jnp.asarray(ranges)))
+    theirs = np.stack(
+        [
+            c * monitor.obstacle_scale(c.astype(np.float64), monitor.points(r, c))
+            for c, r in zip(commands, ranges, strict=True)
+        ]
+    )
+    scaled = np.linalg.norm(theirs, axis=1) < np.linalg.norm(commands, axis=1) - 1e-6
+    assert 30 < scaled.sum() < 190  # the scenes exercise both outcomes
+    np.testing.assert_allclose(ours, theirs, atol=1e-4)
+
+
 # -- behaviour engine ----------------------------------------------------------------------------
 
 
@@ -297,6 +325,9 @@ def test_su_baselines_on_the_synthetic_test_set(synthetic_test_bank):
     assert static["escapes"] >= 20 and heuristic["escapes"] >= 20
     assert static["served"] >= 80 and heuristic["served"] >= 80
     assert heuristic["travelled"] > static["travelled"]
+    # the navigator's footprint guard keeps the base off the obstacles (the thesis: 0); users walk
+    # their recorded paths blind to the robot, and a few catch up with an escaping base
+    assert static["collisions_obstacle"] == 0 and heuristic["collisions_obstacle"] == 0
 
 
 # -- the command line ----------------------------------------------------------------------------

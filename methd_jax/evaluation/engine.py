@@ -151,6 +151,7 @@ class EvalState:
     escape_goal: jax.Array  # (3,)
     method: object  # the method's state
     touching: jax.Array  # (2,) bool: obstacle, user contact at the last step (for counting events)
+    scan: jax.Array  # (collision_rays,) ranges from the base's current pose (collisions, the guard)
     key: jax.Array
     results: dict  # name -> (K,) per-episode results
 
@@ -208,9 +209,18 @@ def mu_schedule(bank: MotionBank, starts: np.ndarray, offset: int, trajectories=
 
 
 def escape_point(
-    pose: jax.Array, users_xy: jax.Array, present: jax.Array, floor: Floor, grid: nav.Costmap, cfg
+    pose: jax.Array,
+    users_xy: jax.Array,
+    present: jax.Array,
+    floor: Floor,
+    grid: nav.Costmap,
+    cfg: EngineConfig,
 ) -> tuple[jax.Array, jax.Array]:
-    """The first free escape candidate (pose (3,), found) behind the robot, away from the closest user."""
+    """The first free escape candidate (pose (3,), found) behind the robot, away from the closest user.
+
+    A candidate is free when the footprint fits there, the straight way to it crosses no lethal
+    cell and it is ``escape_clearance`` from every user.
+    """
     d = jnp.where(present, jnp.linalg.norm(users_xy - pose[:2], axis=1), jnp.inf)
     away = pose[:2] - users_xy[jnp.argmin(d)]
     base = jnp.arctan2(away[1], away[0])
@@ -278,6 +288,7 @@ class Engine:
             escape_goal=jnp.zeros(3),
             method=self.method.init(),
             touching=jnp.zeros(2, bool),
+            scan=self._scan(schedule.start[0]),
             key=key,
             results=results,
         )
@@ -309,7 +320,11 @@ class Engine:
             # a base that stays where it is and stays in contact is one collision, not one per
             # episode; a new user is a new contact
             touching=jnp.stack([s.touching[0] & ~reset, jnp.bool_(False)]),
+            scan=jnp.where(reset, self._scan(robot_lib.pose(fresh)), s.scan),
         )
+
+    def _scan(self, pose: jax.Array) -> jax.Array:
+        return lidar.scan(self.floor, pose, num_rays=self.cfg.collision_rays)
 
     # -- one step --------------------------------------------------------------------------------
 
@@ -410,18 +425,23 @@ class Engine:
         plan_t = jnp.where(replan, 0, s.plan_t + 1)
         speed = jnp.where(mode == ESCAPE, ncfg.escape_speed, ncfg.max_speed)
         accel = jnp.where(mode == ESCAPE, ncfg.escape_accel, ncfg.max_accel)
-        nav_world, nav_local = nav.follow(self.grid, field, pose, s.nav_command, goal, ncfg, speed, accel)
-        brake_world, brake_local = nav.stop(s.nav_command, pose, ncfg)
+        _, nav_local = nav.follow(self.grid, field, pose, s.nav_command, goal, ncfg, speed, accel)
+        _, brake_local = nav.stop(s.nav_command, pose, ncfg)
+        # the navigator's and the brake's commands pass the footprint guard (the thesis's ROS
+        # stack checked its footprint); a method's own commands are the method's responsibility
+        command = jnp.where(navigating, nav_local, brake_local)
         direct = (mode == CHASE) & ~order.navigate
-        command = jnp.where(navigating, nav_local, jnp.where(direct, order.command, brake_local))
-        direct_world = jnp.concatenate([rotate(pose[2], order.command[:2]), order.command[2:]])
-        nav_command = jnp.where(navigating, nav_world, jnp.where(direct, direct_world, brake_world))
+        command = jax.lax.cond(  # the sweep only when the base is to move (a parked base is not)
+            ~direct & jnp.any(command != 0), lambda: nav.guard(command, s.scan, ncfg), lambda: command
+        )
+        command = jnp.where(direct, order.command, command)
+        nav_command = jnp.concatenate([rotate(pose[2], command[:2]), command[2:]])
 
         robot = self.robot.step(s.robot, command)
         new_pose = robot_lib.pose(robot)
 
         # bookkeeping
-        ranges = lidar.scan(self.floor, new_pose, num_rays=cfg.collision_rays)
+        ranges = self._scan(new_pose)
         hit_obstacle = jnp.any(ranges < self._boundary)
         body = footprint_distance(new_pose, users_xy)
         hit_user = jnp.any(present & (body < cfg.user_radius))
@@ -455,6 +475,7 @@ class Engine:
             escape_goal=escape_goal,
             method=method_state,
             touching=jnp.stack([hit_obstacle, hit_user]),
+            scan=ranges,
             key=key,
             results=res,
         )

@@ -9,6 +9,13 @@ heading (with none reachable, the most open one), the speed falls as ``sqrt(2 a 
 goal, the yaw turns toward the goal's yaw, and velocity and yaw rate change at most by the
 acceleration limits per step. All pure and deterministic; the field is planned only when the caller
 asks (``lax.cond``), so a 50 Hz loop does not pay for a plan every step.
+
+:func:`guard` is the local planner's footprint check (nav2's collision monitor, "approach"
+behaviour): the command is held over a horizon, the footprint swept along the arc against the
+latest scan, and the command scaled so that the sweep stops short of the first point it would hit.
+The plan and the follower only see the footprint's circumscribed disc on a 0.1 m grid; the guard
+sees the rectangle and the scan, which is what keeps a base that clips a corner, overshoots a goal
+beside a wall or brakes into a corner off the obstacles.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from flax import struct
 
 from methd_jax import floors
 from methd_jax.floors import Floor
-from methd_jax.geometry import rotate, wrap_angle
+from methd_jax.geometry import KAIROS, rotate, wrap_angle
 from methd_jax.motion.features import CONTROL_HZ
 
 DT = 1.0 / CONTROL_HZ
@@ -69,6 +76,11 @@ class NavigatorConfig:
     """Cells nearer than this cost more, m."""
     inflation_cost: float = 10.0
     """Cost multiplier at the lethal edge, falling linearly to 1 at ``inflation_radius``."""
+    guard_horizon: float = 1.0
+    """Seconds the guard holds a command for its sweep: it covers the base's braking (3 m/s^2
+    stops 2 m/s in 0.7 s), so scaling to the last clear moment leaves room to stop."""
+    guard_margin: float = 0.05
+    """Added to every side of the footprint in the guard's sweep, m."""
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -267,3 +279,51 @@ def segment_clear(grid: Costmap, start: jax.Array, end: jax.Array, skip: float =
     ij = grid.cell(pts)
     ok = jnp.isfinite(grid.cost[ij[:, 0], ij[:, 1]]) | (t * length < skip)
     return jnp.all(ok)
+
+
+def arc(command: jax.Array, t: jax.Array) -> jax.Array:
+    """Poses (x, y, yaw) ``(T, 3)`` reached from the origin after times ``t`` (T,) under a constant
+    robot-frame twist (vx, vy, wz)."""
+    vx, vy, wz = command[0], command[1], command[2]
+    th = wz * t
+    turning = jnp.abs(wz) > 1e-6
+    w = jnp.where(turning, wz, 1.0)
+    s, c = jnp.sin(th), jnp.cos(th)
+    x = jnp.where(turning, (vx * s + vy * (c - 1.0)) / w, vx * t)
+    y = jnp.where(turning, (vx * (1.0 - c) + vy * s) / w, vy * t)
+    return jnp.stack([x, y, th], -1)
+
+
+def _inside(poses: jax.Array, points: jax.Array, half: jax.Array) -> jax.Array:
+    """(T, P): point p inside the rectangle of half-sizes ``half`` centred at pose t."""
+    c, s = jnp.cos(poses[:, 2:3]), jnp.sin(poses[:, 2:3])
+    dx = points[None, :, 0] - poses[:, 0:1]
+    dy = points[None, :, 1] - poses[:, 1:2]
+    return (jnp.abs(c * dx + s * dy) <= half[0]) & (jnp.abs(-s * dx + c * dy) <= half[1])
+
+
+def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Array:
+    """``command`` (robot frame) scaled by the largest factor in [0, 1] whose sweep over
+    ``guard_horizon`` hits no scan point; ``ranges`` is a full-circle scan from the base's centre
+    (ray ``i`` at ``2 pi i / n`` from the robot's heading).
+
+    Scaling is exact for static points: at factor s the base covers in the horizon T what the full
+    command covers in s T, so s is the last clear sample's time over T. Points already inside the
+    footprint are ignored (a contact that has happened: what is checked is what the command would
+    newly hit); points inside the margin are checked against the footprint itself, so the base may
+    back away from a close wall but not drive into it.
+    """
+    n = ranges.shape[0]
+    a = 2.0 * jnp.pi * jnp.arange(n) / n
+    pts = jnp.where(jnp.isfinite(ranges), ranges, 1e3)[:, None] * jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
+    body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
+    half = body + cfg.guard_margin
+    origin = jnp.zeros((1, 3))
+    in_body = _inside(origin, pts, body)[0]
+    in_margin = _inside(origin, pts, half)[0] & ~in_body
+    steps = max(1, round(cfg.guard_horizon / DT))
+    poses = arc(command, DT * jnp.arange(1, steps + 1))
+    hit = jnp.any(_inside(poses, pts, half) & ~in_body & ~in_margin, axis=1)
+    hit |= jnp.any(_inside(poses, pts, body) & in_margin, axis=1)
+    scale = jnp.where(jnp.any(hit), jnp.argmax(hit) / steps, 1.0)
+    return command * scale
