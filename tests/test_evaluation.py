@@ -267,6 +267,7 @@ def test_summary_and_table():
     assert s["min_user_distance"] == 1.2
     md = metrics.table_markdown({"SU Static": s})
     assert "2.00 [1.00] | 4.84 [2.27]" in md and "2 (2) | 99 (100)" in md
+    assert "| 1 (1 + 0) | 0 |" in md  # collisions: ours split into obstacles + users
 
 
 # -- statistics ------------------------------------------------------------------------------------

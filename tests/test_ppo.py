@@ -19,10 +19,6 @@ from train.run import NonFiniteError, build, train
 TINY = (*TINY_RUN, "checkpoint_every=2")
 
 
-def tiny(*extra):
-    return apply_overrides(preset("quick"), [*TINY, *extra])
-
-
 # The trainer's guarantees do not depend on the environment: the default suite checks them on
 # GuideRL (kinematic, compiles in a third of the time), the slow set on SU's MJX and LiDAR as well.
 TINY_GUIDE = tuple(o for o in TINY_RUN if not o.startswith("env.num_rays"))  # GuideRL has no LiDAR
@@ -135,12 +131,13 @@ def test_train_is_pure_and_vmaps_over_seeds(name, overrides, layer):
     assert metrics["loss/value"].shape == (2, 2)
 
 
-def test_resume_after_a_kill_is_bit_identical(tmp_path):
-    config = tiny("timesteps=24")  # 6 iterations, checkpoints at 2, 4, 6
-    whole = train(config, tmp_path / "whole", preset_name="quick", progress=False)
+@pytest.mark.parametrize("name, overrides, layer", ENVS)
+def test_resume_after_a_kill_is_bit_identical(tmp_path, name, overrides, layer):
+    config = apply_overrides(preset(name), [*overrides, "checkpoint_every=2", "timesteps=24"])  # 6 iterations
+    whole = train(config, tmp_path / "whole", preset_name=name, progress=False)
     # the process ends after iteration 3: the newest checkpoint is the one at 2
-    train(config, tmp_path / "cut", preset_name="quick", progress=False, stop_after=3)
-    resumed = train(config, tmp_path / "cut", preset_name="quick", progress=False, resume=True)
+    train(config, tmp_path / "cut", preset_name=name, progress=False, stop_after=3)
+    resumed = train(config, tmp_path / "cut", preset_name=name, progress=False, resume=True)
     assert int(resumed["state"].iteration) == 6
     for a, b in zip(
         jax.tree.leaves(whole["state"].params), jax.tree.leaves(resumed["state"].params), strict=True
@@ -151,13 +148,15 @@ def test_resume_after_a_kill_is_bit_identical(tmp_path):
     np.testing.assert_array_equal([r["loss/value"] for r in rows], [r["loss/value"] for r in whole["rows"]])
 
 
-def test_a_diverging_update_stops_the_run(tmp_path):
-    bad = tiny("timesteps=8", "ppo.learning_rate=1e30")  # NaN within the first epoch
+@pytest.mark.parametrize("name, overrides, layer", ENVS)
+def test_a_diverging_update_stops_the_run(tmp_path, name, overrides, layer):
+    bad = apply_overrides(preset(name), [*overrides, "timesteps=8", "ppo.learning_rate=1e30"])  # NaN at once
     with pytest.raises(NonFiniteError, match=r"at iteration 1; stopped. Last good checkpoint: none"):
-        train(bad, tmp_path, preset_name="quick", progress=False)
+        train(bad, tmp_path, preset_name=name, progress=False)
 
 
-def test_a_non_finite_update_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
+@pytest.mark.parametrize("name, overrides, layer", ENVS)
+def test_a_non_finite_update_keeps_the_last_good_checkpoint(tmp_path, monkeypatch, name, overrides, layer):
     real_update = ppo.Trainer.update
 
     def poisoned(self, state):  # parameters turn to NaN in the third iteration
@@ -168,7 +167,8 @@ def test_a_non_finite_update_keeps_the_last_good_checkpoint(tmp_path, monkeypatc
 
     monkeypatch.setattr(ppo.Trainer, "update", poisoned)
     with pytest.raises(NonFiniteError, match=r"at iteration 3; stopped. Last good checkpoint: iteration 2"):
-        train(tiny("timesteps=16"), tmp_path, preset_name="quick", progress=False)
+        config = apply_overrides(preset(name), [*overrides, "checkpoint_every=2", "timesteps=16"])
+        train(config, tmp_path, preset_name=name, progress=False)
     from train.checkpoint import Checkpoints
 
     assert Checkpoints(tmp_path / "checkpoints").latest() == 2

@@ -74,7 +74,7 @@ ROWS = (
     ("Distance to HIP, median [IQR] m (lower is better)", "distance_to_hip"),
     ("Total travelled distance, m (lower is better)", "travelled"),
     ("Successful haptic serves: served (requested) (higher is better)", "served"),
-    ("Robot collisions (lower is better)", "collisions"),
+    ("Robot collisions: all (obstacles + users) (lower is better)", "collisions"),
     ("Escape activations (lower is better)", "escapes"),
     ("Inform activations (beyond the thesis)", "informs"),
     ("Time within d_crit = 1.77 m, s (beyond the thesis)", "critical_time"),
@@ -90,6 +90,8 @@ def _cell(s: dict | None, key: str) -> str:
         return f"{_num(v[0])} [{_num(v[1])}]"
     if key == "served":
         return f"{v} ({s['requested']})"
+    if key == "collisions" and "collisions_user" in s:  # the thesis gives the total alone
+        return f"{v} ({s['collisions_obstacle']} + {s['collisions_user']})"
     if key == "travelled":
         return f"{v:.0f}"
     if isinstance(v, float):
