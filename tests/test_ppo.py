@@ -166,8 +166,8 @@ def test_a_non_finite_update_keeps_the_last_good_checkpoint(tmp_path, monkeypatc
         return new, {**metrics, "finite": ppo.all_finite(new.params).astype(jnp.float32)}
 
     monkeypatch.setattr(ppo.Trainer, "update", poisoned)
+    config = apply_overrides(preset(name), [*overrides, "checkpoint_every=2", "timesteps=16"])
     with pytest.raises(NonFiniteError, match=r"at iteration 3; stopped. Last good checkpoint: iteration 2"):
-        config = apply_overrides(preset(name), [*overrides, "checkpoint_every=2", "timesteps=16"])
         train(config, tmp_path, preset_name=name, progress=False)
     from train.checkpoint import Checkpoints
 

@@ -30,7 +30,7 @@ from flax import struct
 
 from methd_jax import floors
 from methd_jax.floors import Floor
-from methd_jax.geometry import KAIROS, rotate, wrap_angle
+from methd_jax.geometry import KAIROS, ray_angles, rotate, wrap_angle
 from methd_jax.motion.features import CONTROL_HZ
 
 DT = 1.0 / CONTROL_HZ
@@ -305,7 +305,7 @@ def _inside(poses: jax.Array, points: jax.Array, half: jax.Array) -> jax.Array:
 def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Array:
     """``command`` (robot frame) scaled by the largest factor in [0, 1] whose sweep over
     ``guard_horizon`` hits no scan point; ``ranges`` is a full-circle scan from the base's centre
-    (ray ``i`` at ``2 pi i / n`` from the robot's heading).
+    (rays as :func:`methd_jax.geometry.ray_angles`, from the robot's heading).
 
     Scaling is exact for static points: at factor s the base covers in the horizon T what the full
     command covers in s T, so s is the last clear sample's time over T. Points already inside the
@@ -313,9 +313,9 @@ def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Ar
     newly hit); points inside the margin are checked against the footprint itself, so the base may
     back away from a close wall but not drive into it.
     """
-    n = ranges.shape[0]
-    a = 2.0 * jnp.pi * jnp.arange(n) / n
-    pts = jnp.where(jnp.isfinite(ranges), ranges, 1e3)[:, None] * jnp.stack([jnp.cos(a), jnp.sin(a)], -1)
+    a = ray_angles(ranges.shape[0])  # numpy: constants in the compiled step, no trigonometry per call
+    directions = np.stack([np.cos(a), np.sin(a)], -1).astype(np.float32)
+    pts = jnp.where(jnp.isfinite(ranges), ranges, 1e3)[:, None] * directions
     body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
     half = body + cfg.guard_margin
     origin = jnp.zeros((1, 3))
