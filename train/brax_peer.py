@@ -23,9 +23,18 @@ from jax.sharding import PartitionSpec as P
 import networks
 
 
+BRAX_PMAP_AXIS = "i"
+"""The axis name Brax's PPO gives its ``pmap`` (``_PMAP_AXIS_NAME`` in its ``train.py``)."""
+
+
 def device_put_replicated(x, devices):
-    """JAX's documented drop-in for the removed ``jax.device_put_replicated``."""
-    sharding = NamedSharding(Mesh(np.array(devices), ("x",)), P("x"))
+    """JAX's documented drop-in for the removed ``jax.device_put_replicated``.
+
+    The mesh axis carries Brax's pmap axis name: jax 0.10's pmap shards its outputs over a mesh
+    named after that axis, and an input laid out over a mesh of another name made Brax's first
+    training epoch compile twice (once for the state put here, once for the epoch's own output).
+    """
+    sharding = NamedSharding(Mesh(np.array(devices), (BRAX_PMAP_AXIS,)), P(BRAX_PMAP_AXIS))
     return jax.tree.map(lambda y: jax.device_put(jnp.stack([y] * len(devices)), sharding), x)
 
 

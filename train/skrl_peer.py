@@ -46,7 +46,7 @@ class _Batched:
         return self.env.step(state, action)
 
 
-def _models(spec: dict, observation_space, action_space):
+def _models(spec: dict, observation_space, action_space, device):
     """skrl policy and value models around ``networks.from_spec(spec)`` (unclipped Gaussian
     actions, as ours: the environments clip them)."""
     from skrl.models.jax import DeterministicMixin, GaussianMixin, Model
@@ -74,6 +74,9 @@ def _models(spec: dict, observation_space, action_space):
     models = {"policy": Policy(**kw), "value": Value(**kw)}
     for role, model in models.items():
         model.init_state_dict(role=role)
+        # the initialiser leaves constant-initialised parameters (biases, log-std) uncommitted and
+        # skrl's first update commits them: committed from the start, each model compiles once
+        model.state_dict = model.state_dict.replace(params=jax.device_put(model.state_dict.params, device))
     return models
 
 
@@ -112,9 +115,12 @@ def make(env, spec: dict, ppo: PPOConfig, num_envs: int, episode_length: int, se
     # skrl's memory writes float flags into int8 tensors: JAX warns on every write, to no purpose here
     warnings.filterwarnings("ignore", "scatter inputs have incompatible types", FutureWarning)
     skrl_config.jax.device = jax.devices()[0]  # its default names "cuda:0" and warns on a CPU
-    skrl_config.jax.key = seed
+    # skrl makes its key under `jax.default_device` (uncommitted) but puts actions on the device
+    # (committed): the environment's state would switch from the one to the other after the first
+    # step, and its step compile twice. The same key, committed from the start, compiles once.
+    skrl_config.jax.key = jax.device_put(jax.random.PRNGKey(seed), skrl_config.jax.device)
     wrapped = wrap_env(_Batched(env, num_envs, episode_length), wrapper="playground", verbose=False)
-    models = _models(spec, wrapped.observation_space, wrapped.action_space)
+    models = _models(spec, wrapped.observation_space, wrapped.action_space, skrl_config.jax.device)
     cfg = PPO_CFG(
         rollouts=ppo.rollouts,
         learning_epochs=ppo.epochs,
