@@ -1,7 +1,8 @@
-"""PPO learns on CPU within CI's budget: SU approaches the HIP, GuideRL picks the requesting user.
+"""PPO learns on CPU within CI's budget: SU reaches and holds the HIP, GuideRL picks the requesting user.
 
-Both runs are scaled down from the thesis's (Table 4.4 trains on ~400M transitions; these see
-well under 1M) and say so in their configuration.
+Both runs are scaled down from the thesis's (Table 4.4: 960k timesteps x 2,048 environments, ~2,000M
+transitions, for SU; 240k x 4,096, ~980M, for GuideRL; these see 0.6M and 2M) and say so in their
+configuration.
 """
 
 import jax
@@ -49,39 +50,53 @@ def _policies(setup, state, action_size):
     }
 
 
-def test_su_policy_learns_to_approach_the_hip(tmp_path):
-    # An open floor (walls only), 72 rays, a small body and a tenth of Table 4.1's velocity penalty:
-    # with the full penalty the policy first spends ~1M transitions learning to stand still.
+def test_su_policy_learns_to_reach_and_hold_the_hip(tmp_path):
+    """614k transitions (the thesis trained on ~2,000M) on an open floor: after the request, while
+    the user stands and reaches out, the trained robot holds the HIP where random acting stays
+    metres away. Measured (seeds 0 / 1 / 2): median distance 0.47 / 0.36 / 0.68 m, 88% / 87% / 83%
+    of those steps within 1 m; random 6.1 m and 0%. 819k transitions gave 0.32 / 0.21 m (seeds 0 /
+    1) in 20 s more."""
+    # An open floor (walls only), 72 rays and a tenth of Table 4.1's velocity penalty: with the full
+    # penalty the policy first spends ~1M transitions learning to stand still. A 3 x 128 body
+    # trains as fast as a 2 x 64 one here (the environment dominates) and learns much faster.
     config = apply_overrides(
         preset("quick"),
         [
             "env.num_rays=72",
             "env.motion=sample",
             "env.weights.velocity=-0.2",
-            "hidden=64,64",
-            "num_envs=128",
+            "hidden=128,128,128",
+            "num_envs=256",
             "ppo.rollouts=32",
             "ppo.minibatches=4",
-            "timesteps=3200",
+            "timesteps=2400",
         ],
     )
     out = train(config, tmp_path, progress=False)
     setup = build(config)
-    results = _evaluate(setup, _policies(setup, out["state"], 3), jax.random.key(9), steps=500)
+    # 30 s: three of the four sample users request a touch (at 10.8, 17.3 and 18.7 s) and an
+    # episode succeeds 10 s after its request
+    results = _evaluate(setup, _policies(setup, out["state"], 3), jax.random.key(9), steps=1500)
     (trained, m_trained), (random, m_random) = results["trained"], results["random"]
-    last_second = slice(-50, None)
-    d_trained = np.mean(m_trained["distance_to_goal"][last_second])
-    d_random = np.mean(m_random["distance_to_goal"][last_second])
+
+    def holding(m):  # distances to the HIP on the steps after the request
+        return m["distance_to_goal"][m["requested"] > 0]
+
+    d_trained, d_random = holding(m_trained), holding(m_random)
     print(
-        f"reward/step trained {trained:.2f} random {random:.2f}; "
-        f"HIP distance {d_trained:.2f} vs {d_random:.2f}"
+        f"reward/step trained {trained:.2f} random {random:.2f}; after the request: median HIP "
+        f"distance {np.median(d_trained):.2f} m vs {np.median(d_random):.2f} m, within 0.5 / 1 m "
+        f"{np.mean(d_trained < 0.5):.0%} / {np.mean(d_trained < 1):.0%} vs {np.mean(d_random < 0.5):.0%} / "
+        f"{np.mean(d_random < 1):.0%} of {d_trained.size} / {d_random.size} steps"
     )
     assert trained > random + 0.3 * abs(random)
-    assert d_trained < 0.75 * d_random
+    assert d_trained.size > 10_000  # most of the 64 episodes reach their request
+    assert np.median(d_trained) < 0.8 and np.mean(d_trained < 1.0) > 0.7
+    assert np.median(d_random) > 2.0 and np.mean(d_random < 1.0) < 0.1
 
 
 def test_guide_policy_learns_to_pick_the_requesting_user(tmp_path):
-    """GuideRL in CI's budget (2M transitions; the thesis trained on ~200M) picks the requesting
+    """GuideRL in CI's budget (2M transitions; the thesis trained on ~980M) picks the requesting
     user at >= 90% of requests and beats random acting; a scripted rule (turn toward the user
     standing still) shows what the data allows."""
     motion.save(tmp_path / "bags", motion.synthesize(40, seed=3))

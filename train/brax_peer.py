@@ -22,7 +22,6 @@ from jax.sharding import PartitionSpec as P
 
 import networks
 
-
 BRAX_PMAP_AXIS = "i"
 """The axis name Brax's PPO gives its ``pmap`` (``_PMAP_AXIS_NAME`` in its ``train.py``)."""
 

@@ -7,7 +7,9 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            environments x 32 rollouts, 4.1M transitions, and a tenth of Table 4.1's velocity
            penalty: with the full penalty a policy spends its first million or so transitions
            learning to stand still, so a CPU-sized run would show nothing else. About 7 minutes
-           on a 2-core CPU; the robot learns to approach the HIP. The default.
+           on a 2-core CPU; the robot learns to reach and hold the HIP (on 256 evaluation
+           episodes of the sample users, 15 s in: median 0.16 m from it, 76% within 0.3 m,
+           91% of episodes without a collision). The default.
 ``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
 ``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
 ``nav``    NavRL with two users: 2,048 environments, 960,000 timesteps; the goal comes from the
@@ -99,7 +101,7 @@ _OPEN_FLOOR = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 0), num_polygo
 PRESETS: dict[str, tuple[str, RunConfig]] = {
     "quick": (
         "SU on walled floors without obstacles, 90 rays, a 3 x 128 body, a tenth of the velocity "
-        "penalty: ~7 min on a 2-core CPU, the robot learns to approach the HIP (default)",
+        "penalty: ~7 min on a 2-core CPU, the robot learns to reach and hold the HIP (default)",
         RunConfig(
             env_name="su",
             env=dataclasses.replace(
