@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import pytest
 
 from train import bench
@@ -54,7 +55,7 @@ def test_bench_quick_checks_ratios_against_the_peers(tmp_path):
     assert run.returncode == 0, run.stdout + run.stderr
     assert "mjx.ray" in run.stdout and "Brax PPO" in run.stdout and "skrl PPO" in run.stdout
     res = json.loads(out.read_text())
-    assert set(res) == {"machine", "lidar", "train", "peak_host_memory_mb"}
+    assert set(res) == {"machine", "lidar", "train", "peak_host_memory_mb", "peak_device_memory_mb"}
     (row,) = res["lidar"]
     assert row["floors"] == 64 and row["ratio"] >= 1.0 and row["rays_agreeing_1mm"] >= 0.999
     train = res["train"]
@@ -67,6 +68,26 @@ def test_bench_quick_checks_ratios_against_the_peers(tmp_path):
         )
         assert train[f"ratio_{peer}"] >= 1.0 and train[f"{peer}_compile_s"] > 0
     assert train["skrl_updated_both_heads"]
+    if jax.default_backend() == "cpu":  # XLA:CPU keeps no allocator statistics
+        assert res["peak_device_memory_mb"] is None
+
+
+def test_peak_device_memory_is_the_largest_allocator_peak():
+    class Device:
+        def __init__(self, stats):
+            self.stats = stats
+
+        def memory_stats(self):
+            return self.stats
+
+    gpus = [
+        Device({"peak_bytes_in_use": 3 * 2**20, "bytes_in_use": 2**20}),
+        Device({"peak_bytes_in_use": 5 * 2**20}),
+    ]
+    assert bench.peak_device_memory_mb(gpus) == 5.0
+    assert bench.peak_device_memory_mb([Device(None), Device({})]) is None
+    here = bench.peak_device_memory_mb()
+    assert here is None if jax.default_backend() == "cpu" else here > 0
 
 
 def test_bench_checks_fail_when_a_peer_is_faster():

@@ -12,6 +12,8 @@ Sections (each timed in this one process, on whatever JAX device is default):
   data does not change the cost).
 * ``scaling`` (``--scaling PNG``): ``su`` env steps/s at 256 to 16,384 environments and with 8 to
   64 obstacles per floor, plotted.
+* peak host memory (the process's maximum resident set) and, on a GPU, peak device memory (the
+  allocator's ``peak_bytes_in_use``), over the whole run.
 * ``train``: PPO iterations of the ``su`` preset (Table 4.4: 48 rollouts, 5 epochs x 8 minibatches,
   the 702k-parameter network; ``--quick``: the ``quick`` preset's) at ``--train-envs`` environments,
   ours against Brax's PPO trainer (``train.brax_peer``) and skrl's JAX PPO (``train.skrl_peer``,
@@ -377,6 +379,17 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     return row
 
 
+def peak_device_memory_mb(devices=None) -> float | None:
+    """The largest ``peak_bytes_in_use`` over the local devices since the process started, in MB;
+    None where the backend keeps no allocator statistics (the CPU)."""
+    peaks = []
+    for dev in devices if devices is not None else jax.local_devices():
+        stats = dev.memory_stats()
+        if stats and "peak_bytes_in_use" in stats:
+            peaks.append(stats["peak_bytes_in_use"] / 2**20)
+    return max(peaks) if peaks else None
+
+
 def machine() -> dict:
     dev = jax.devices()[0]
     return {
@@ -444,7 +457,16 @@ def main(argv: list[str] | None = None) -> int:
         plot_scaling(results["scaling"], args.scaling)
         log(f"  scaling plot written to {args.scaling}")
     results["peak_host_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    log(f"  peak host memory {results['peak_host_memory_mb']:.0f} MB")
+    results["peak_device_memory_mb"] = peak_device_memory_mb()
+    device_peak = results["peak_device_memory_mb"]
+    log(
+        f"  peak host memory {results['peak_host_memory_mb']:.0f} MB, peak device memory "
+        + (
+            f"{device_peak:.0f} MB"
+            if device_peak is not None
+            else f"n/a ({jax.default_backend()} reports none)"
+        )
+    )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=2)
