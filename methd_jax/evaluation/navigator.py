@@ -30,7 +30,7 @@ from flax import struct
 
 from methd_jax import floors
 from methd_jax.floors import Floor
-from methd_jax.geometry import KAIROS, ray_angles, rotate, wrap_angle
+from methd_jax.geometry import KAIROS, ray_angles, rotate, to_local, wrap_angle
 from methd_jax.motion.features import CONTROL_HZ
 
 DT = 1.0 / CONTROL_HZ
@@ -294,14 +294,6 @@ def arc(command: jax.Array, t: jax.Array) -> jax.Array:
     return jnp.stack([x, y, th], -1)
 
 
-def _inside(poses: jax.Array, points: jax.Array, half: jax.Array) -> jax.Array:
-    """(T, P): point p inside the rectangle of half-sizes ``half`` centred at pose t."""
-    c, s = jnp.cos(poses[:, 2:3]), jnp.sin(poses[:, 2:3])
-    dx = points[None, :, 0] - poses[:, 0:1]
-    dy = points[None, :, 1] - poses[:, 1:2]
-    return (jnp.abs(c * dx + s * dy) <= half[0]) & (jnp.abs(-s * dx + c * dy) <= half[1])
-
-
 def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Array:
     """``command`` (robot frame) scaled by the largest factor in [0, 1] whose sweep over
     ``guard_horizon`` hits no scan point; ``ranges`` is a full-circle scan from the base's centre
@@ -318,12 +310,12 @@ def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Ar
     pts = jnp.where(jnp.isfinite(ranges), ranges, 1e3)[:, None] * directions
     body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
     half = body + cfg.guard_margin
-    origin = jnp.zeros((1, 3))
-    in_body = _inside(origin, pts, body)[0]
-    in_margin = _inside(origin, pts, half)[0] & ~in_body
+    in_body = jnp.all(jnp.abs(pts) <= body, -1)  # the scan is taken at the origin of the sweep
+    in_margin = jnp.all(jnp.abs(pts) <= half, -1) & ~in_body
     steps = max(1, round(cfg.guard_horizon / DT))
     poses = arc(command, DT * jnp.arange(1, steps + 1))
-    hit = jnp.any(_inside(poses, pts, half) & ~in_body & ~in_margin, axis=1)
-    hit |= jnp.any(_inside(poses, pts, body) & in_margin, axis=1)
+    local = jnp.abs(jax.vmap(to_local, (0, None))(poses, pts))  # (T, P, 2), once for both boxes
+    hit = jnp.any(jnp.all(local <= half, -1) & ~in_body & ~in_margin, axis=1)
+    hit |= jnp.any(jnp.all(local <= body, -1) & in_margin, axis=1)
     scale = jnp.where(jnp.any(hit), jnp.argmax(hit) / steps, 1.0)
     return command * scale
