@@ -457,16 +457,11 @@ def main(argv: list[str] | None = None) -> int:
         plot_scaling(results["scaling"], args.scaling)
         log(f"  scaling plot written to {args.scaling}")
     results["peak_host_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    results["peak_device_memory_mb"] = peak_device_memory_mb()
-    device_peak = results["peak_device_memory_mb"]
-    log(
-        f"  peak host memory {results['peak_host_memory_mb']:.0f} MB, peak device memory "
-        + (
-            f"{device_peak:.0f} MB"
-            if device_peak is not None
-            else f"n/a ({jax.default_backend()} reports none)"
-        )
+    device_peak = results["peak_device_memory_mb"] = peak_device_memory_mb()
+    device_text = (
+        f"{device_peak:.0f} MB" if device_peak is not None else f"n/a ({jax.default_backend()} reports none)"
     )
+    log(f"  peak host memory {results['peak_host_memory_mb']:.0f} MB, peak device memory {device_text}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=2)
