@@ -69,6 +69,8 @@ class NavConfig:
     100 trajectories, like the shipped sample, are used whole)."""
     lab: bool = False
     """Train on the lab twin instead of a fresh procedural floor per episode."""
+    lab_fraction: float = 0.0
+    """With ``lab=False``: the share of episodes on the lab twin, the rest on procedural floors."""
     floor: FloorConfig = ENV_FLOORS
     """Procedural floor parameters."""
     weights: rewards.RewardWeights = rewards.SU_WEIGHTS
@@ -138,6 +140,8 @@ class NavConfig:
             raise ValueError("num_rays must be >= 8 and spawn_candidates >= 1")
         if abs(sum(self.action_weights) - 1.0) > 1e-6:
             raise ValueError(f"action_weights must sum to 1, got {self.action_weights}")
+        if not 0.0 <= self.lab_fraction <= 1.0:
+            raise ValueError(f"lab_fraction must be in [0, 1], got {self.lab_fraction}")
         for name in ("cooldown", "time_limit", "lidar_range", "user_radius"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -210,6 +214,8 @@ class NavEnv(Env):
         self.guide_policy = guide_policy
         self.robot = robot_lib.Robot(config.robot)
         self._lab = floors.lab() if config.lab else None
+        # the lab twin padded to the procedural floors' capacity, so either fits one World
+        self._lab_mixed = floors.lab().pad(*config.floor.capacity) if config.lab_fraction > 0 else None
         self._boundary, self._inflation_scale = KAIROS.ray_geometry(config.num_rays)
         self._scale = jnp.array([config.robot.max_speed, config.robot.max_speed, config.robot.max_yaw_rate])
         self._cooldown_steps = round(config.cooldown * CONTROL_HZ)
@@ -247,8 +253,14 @@ class NavEnv(Env):
         happen, candidate 0 is used and the episode ends at once in a collision.
         """
         cfg = self.config
-        keys = jax.random.split(rng, 11)  # one key per use: the world's own key is keys[8]
-        floor = self._lab if self._lab is not None else floors.generate(keys[0], cfg.floor)
+        keys = jax.random.split(rng, 12)  # one key per use: the world's own key is keys[8]
+        if self._lab is not None:
+            floor = self._lab
+        else:
+            floor = floors.generate(keys[0], cfg.floor)
+            if self._lab_mixed is not None:
+                on_lab = jax.random.bernoulli(keys[11], cfg.lab_fraction)
+                floor = jax.tree.map(lambda a, b: jnp.where(on_lab, a, b), self._lab_mixed, floor)
         n_traj = self.bank.num_trajectories
         users = jax.random.choice(keys[1], n_traj, (cfg.num_users,), replace=n_traj < cfg.num_users)
         jitter = jax.random.uniform(keys[2], (cfg.num_users,), maxval=cfg.request_jitter * CONTROL_HZ)

@@ -391,3 +391,19 @@ def test_no_key_is_used_twice_between_reset_and_step(bank):
     assert near.sum() > 500
     assert np.mean(lidar0[near] == lidar1[near]) < 0.01
     assert abs(np.mean(lidar0[near] - lidar1[near])) < 0.01  # same scene, independent noise
+
+
+def test_lab_fraction_mixes_the_lab_twin_with_procedural_floors(bank):
+    env = envs.make("su", bank=bank, lab_fraction=0.5)
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), 64))
+    bounds = np.asarray(state.pipeline_state.floor.bounds)
+    on_lab = np.all(np.isclose(bounds, [-5.5, -6.5, 5.5, 6.5]), axis=1)
+    assert 16 <= on_lab.sum() <= 48  # about half of 64 episodes, each floor whole
+    lab = floors.lab().pad(*env.config.floor.capacity)
+    i = int(np.argmax(on_lab))
+    np.testing.assert_allclose(np.asarray(state.pipeline_state.floor.polygons[i]), np.asarray(lab.polygons))
+    pose = jax.vmap(robot_lib.pose)(state.pipeline_state.robot)
+    sdf = jax.vmap(floors.signed_distance)(state.pipeline_state.floor, pose[:, :2])
+    assert float(sdf.min()) >= 0.82 - 1e-4  # spawned clear on either kind of floor
+    with pytest.raises(ValueError, match="lab_fraction must be in"):
+        envs.make("su", bank=bank, lab_fraction=1.5)
