@@ -148,6 +148,36 @@ def test_guard_agrees_with_the_deployment_monitor():
 # -- behaviour engine ----------------------------------------------------------------------------
 
 
+def test_safety_layer_twin_agrees_with_the_deployment_monitor():
+    # the "DRL + safety" row runs the deployment's collision monitor as JAX; the monitor itself
+    # (numpy, on the robot) is the independent implementation, obstacles and moving users alike
+    from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
+    from methd_jax.evaluation import safety_layer
+    from methd_jax.geometry import KAIROS
+
+    config = SafetyConfig()
+    monitor = CollisionMonitor(KAIROS.length, KAIROS.width, 720, 1.37, config)
+    twin = jax.jit(jax.vmap(lambda c, r, u, v, p: safety_layer.filter_command(c, r, u, v, p, 1.37, config)))
+    rng = np.random.default_rng(3)
+    n = 200
+    ranges = rng.uniform(0.45, 5.0, (n, 720)).astype(np.float32)
+    ranges[rng.uniform(size=ranges.shape) > rng.uniform(0.0, 0.05, (n, 1))] = np.inf
+    commands = rng.uniform([-2, -2, -1.5], [2, 2, 1.5], (n, 3)).astype(np.float32)
+    commands[:20, 2] = 0.0  # straight lines too
+    users = rng.uniform(-4, 4, (n, 2, 2)).astype(np.float32)
+    velocities = rng.uniform(-1.5, 1.5, (n, 2, 2)).astype(np.float32)
+    present = np.ones((n, 2), bool)
+    present[::3, 1] = False  # a user who left the scene is ignored
+    ours = np.asarray(twin(*map(jnp.asarray, (commands, ranges, users, velocities, present))))
+    theirs, reasons = [], []
+    for c, r, u, v, p in zip(commands, ranges, users, velocities, present, strict=True):
+        out, why = monitor(c.astype(np.float64), r.astype(np.float64), u[p], v[p])
+        theirs.append(out)
+        reasons.append(why)
+    assert 20 < reasons.count("user") and 20 < reasons.count("obstacle") and 20 < reasons.count(None)
+    np.testing.assert_allclose(ours, np.asarray(theirs), atol=1e-4)
+
+
 def test_user_walking_at_the_robot_triggers_escape():
     # the robot waits at the origin; the user walks straight at it from 6 m away
     traj = walk([(-5.0, 0.0), (1.0, 0.0)], [1.0])
@@ -342,13 +372,19 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys):
     run_dir = tmp_path / "su"
     assert run.main(["quick", *TINY_RUN, "timesteps=8", "--out", str(run_dir), "--quiet"]) == 0
     out = tmp_path / "eval"
-    # MU is left out here (notebook 04 runs the CLI's MU Static): one engine fewer to compile
-    args = ["--motion", "sample", "--su", str(run_dir), "--no-mu", "--out", str(out), "--quiet"]
-    assert evaluate.main(args) == 0
+    # MU and the Heuristic are left out here (notebook 04 runs the CLI's MU Static, the baselines
+    # test the Heuristic): engines fewer to compile
+    args = ["--motion", "sample", "--su", str(run_dir), "--no-mu", "--no-heuristic", "--out", str(out)]
+    assert evaluate.main([*args, "--quiet", "--procedural", "6"]) == 0
     text = capsys.readouterr().out
-    assert "SU DRL (ours)" in text and "MU Static (ours)" not in text
+    assert "SU DRL (ours)" in text and "SU DRL + safety (ours)" in text and "MU Static (ours)" not in text
+    assert "on 6 fresh procedural floors" in text
     data = json.loads((out / "results.json").read_text())
-    assert set(data["summaries"]) == {"SU Static", "SU Heuristic", "SU DRL"}
+    assert set(data["summaries"]) == {"SU Static", "SU DRL", "SU DRL + safety"}
+    p = data["meta"]["procedural"]
+    assert p["episodes"] == 6
+    ends = [p[k] for k in ("obstacle", "user", "success", "timeout")]
+    assert all(0 <= e <= 1 for e in ends) and sum(ends) >= 1 - p["unfinished"] - 1e-6
     assert data["summaries"]["SU DRL"]["requested"] == 4
     assert len(data["episodes"]["SU DRL"]["t_pos"]) == 4
     assert "friedman" in data["statistics"]["SU"]["t_pos"]

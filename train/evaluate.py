@@ -21,19 +21,34 @@ import numpy as np
 from envs.nav import NavConfig, NavEnv, load_bank
 from methd_jax import floors
 from methd_jax.cli import OneLineParser
+from methd_jax.deploy.safety import SafetyConfig
 from methd_jax.evaluation import engine as eng
 from methd_jax.evaluation import methods, metrics, plots, stats
+from methd_jax.floors import FloorConfig
 from methd_jax.motion.dataset import progress_bar
-from methd_jax.motion.features import HipConfig
+from methd_jax.motion.features import CONTROL_HZ, HipConfig
 from train import export
 from train.presets import ConfigError
 
+PRETRAINED = Path(__file__).resolve().parents[1] / "assets" / "pretrained"
+"""The shipped policies: ``su/``, ``guide/``, ``nav/``, each an exported policy folder."""
+SAFETY_ROW = "DRL + safety"
+"""The row of a policy with the deployment's safety layer between it and the base."""
 
-def load_policy(run: str | Path, bank, kind: str, guide: str | Path | None = None) -> methods.Policy:
+
+def shipped(kind: str) -> Path | None:
+    """The shipped policy folder of ``kind`` ("su", "guide", "nav"), or None if it is not there."""
+    folder = PRETRAINED / kind
+    return folder if (folder / "manifest.json").is_file() else None
+
+
+def load_policy(
+    run: str | Path, bank, kind: str, guide: str | Path | None = None, safety: SafetyConfig | None = None
+) -> methods.Policy:
     """A trained policy from a run folder or an exported policy folder, as an evaluation method.
 
     ``kind`` is "su" (a single-user policy) or "nav" (NavRL; its GuideRL policy comes from ``guide``
-    or from the run's own ``guide_run``)."""
+    or from the run's own ``guide_run``). ``safety``: with the deployment's safety layer."""
     try:
         policy = export.load(run)
     except (FileNotFoundError, ValueError) as err:
@@ -57,7 +72,57 @@ def load_policy(run: str | Path, bank, kind: str, guide: str | Path | None = Non
         if guide_policy.manifest["env"] != "guide":
             raise ConfigError(f"--guide {guide} holds a {guide_policy.manifest['env']!r} policy, not GuideRL")
     env = NavEnv(config, bank=bank, guide_policy=guide_policy)
-    return methods.Policy(env, policy, name="DRL")
+    return methods.Policy(env, policy, name=SAFETY_ROW if safety else "DRL", safety=safety)
+
+
+def procedural(
+    run: str | Path, episodes: int = 200, *, seed: int = 1, floor: FloorConfig | None = None
+) -> dict[str, float]:
+    """A single-user policy on ``episodes`` fresh procedural floors (never the lab twin), users on the
+    held-out test trajectories, each episode run to its end as in training (collision, success or
+    the time limit). ``floor``: the floor distribution (default: the policy's own training floors);
+    the floors come from ``seed``'s keys, which training never draws (it splits its own seed's key).
+    Returns the share of episodes that ended in each way and their count."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    try:
+        policy = export.load(run)
+    except (FileNotFoundError, ValueError) as err:
+        raise ConfigError(str(err)) from None
+    if policy.manifest["env"] != "su":
+        raise ConfigError(f"{run} holds a {policy.manifest['env']!r} policy; --procedural takes a su policy")
+    trained = export.from_jsonable(NavConfig(), policy.manifest["env_config"])
+    config = dataclasses.replace(
+        trained, lab=False, lab_fraction=0.0, split="test", floor=floor or trained.floor
+    )
+    env = NavEnv(config)
+    steps = round(config.time_limit * CONTROL_HZ)
+
+    outcomes = ("obstacle", "user", "success", "timeout")
+
+    def one(state, ended, outcome):
+        """One step of one episode; ``outcome`` keeps how it ended the first time it did."""
+        state = env.step(state, jnp.clip(policy(state.obs), -1.0, 1.0))
+        m = state.metrics
+        now = jnp.stack(
+            [m["collision_obstacle"], m["collision_user"], m["success"], state.info["truncation"]]
+        )
+        first = (state.done > 0) & ~ended
+        return state, ended | (state.done > 0), jnp.where(first, now, outcome)
+
+    @jax.jit
+    def run_all(keys):
+        carry = (jax.vmap(env.reset)(keys), jnp.zeros(episodes, bool), jnp.zeros((episodes, len(outcomes))))
+        carry, _ = jax.lax.scan(lambda c, _: (jax.vmap(one)(*c), None), carry, None, steps)
+        return carry[1], carry[2]
+
+    ended, outcome = jax.device_get(run_all(jax.random.split(jax.random.key(seed), episodes)))
+    out = {name: float(np.mean(outcome[:, i])) for i, name in enumerate(outcomes)}
+    out["episodes"] = episodes
+    out["unfinished"] = float(np.mean(~ended))
+    return out
 
 
 def guide_run_of(run: str | Path) -> str:
@@ -161,6 +226,8 @@ def write_report(results: dict, out: Path, meta: dict) -> tuple[str, dict]:
     stats_text = _stats_text(st)
     figures = plots.figures(results, summaries, out)
     text = ["# Table 5.1, reproduced", "", _meta_text(meta), "", table, ""]
+    if "procedural" in meta:
+        text += [_procedural_text(meta["procedural"]), ""]
     if stats_text:
         text += ["## Statistics", "", "```", stats_text, "```", ""]
     text += ["Figures: " + ", ".join(f"[{p.name}]({p.name})" for p in figures), ""]
@@ -169,6 +236,14 @@ def write_report(results: dict, out: Path, meta: dict) -> tuple[str, dict]:
     payload["episodes"] = results
     (out / "results.json").write_text(json.dumps(_json(payload), indent=1) + "\n")
     return table, st
+
+
+def _procedural_text(p: dict) -> str:
+    return (
+        f"SU DRL on {p['episodes']} fresh procedural floors with obstacles: episodes ended by an obstacle "
+        f"collision {100 * p['obstacle']:.1f}%, a user collision {100 * p['user']:.1f}%, success "
+        f"{100 * p['success']:.1f}%, the time limit {100 * p['timeout']:.1f}%"
+    )
 
 
 def _meta_text(meta: dict) -> str:
@@ -204,11 +279,28 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--no-mu", action="store_true", help="skip the multi-user scenario")
     parser.add_argument("--no-heuristic", action="store_true", help="skip the Heuristic baseline")
+    parser.add_argument(
+        "--no-pretrained",
+        action="store_true",
+        help="without --su: do not evaluate the shipped policies of assets/pretrained (baselines only)",
+    )
+    parser.add_argument(
+        "--no-safety", action="store_true", help="skip the policies' 'DRL + safety' rows (safety layer on)"
+    )
+    parser.add_argument(
+        "--procedural",
+        type=int,
+        metavar="N",
+        default=0,
+        help="also run the SU policy on N fresh procedural floors with obstacles (generalisation; 0: skip)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="key for the LiDAR noise of DRL policies")
     parser.add_argument("--out", type=Path, help="output folder (default runs/eval-<date>-<time>)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
     try:
+        if args.procedural < 0:
+            raise ConfigError(f"--procedural must be >= 0, got {args.procedural}")
         if args.trajectories is not None and args.trajectories < 1:
             raise ConfigError(f"--trajectories must be at least 1, got {args.trajectories}")
         if args.motion not in ("default", "sample") and not Path(args.motion).is_dir():
@@ -224,12 +316,17 @@ def main(argv=None) -> int:
         if not args.no_heuristic:
             su["Heuristic"] = methods.Heuristic()
         mu = {} if args.no_mu else {"Static": methods.Static()}
-        if args.su:
-            su["DRL"] = load_policy(args.su, bank, "su")
+        su_run = args.su or (None if args.no_pretrained else shipped("su"))
+        if su_run:
+            su["DRL"] = load_policy(su_run, bank, "su")
+            if not args.no_safety:
+                su[SAFETY_ROW] = load_policy(su_run, bank, "su", safety=SafetyConfig())
         if args.mu:
             if args.no_mu:
                 raise ConfigError("--mu and --no-mu contradict each other")
             mu["DRL"] = load_policy(args.mu, bank, "nav", args.guide)
+            if not args.no_safety:
+                mu[SAFETY_ROW] = load_policy(args.mu, bank, "nav", args.guide, safety=SafetyConfig())
         if mu and bank.num_trajectories < 2:
             raise ConfigError("the multi-user scenario needs at least 2 trajectories (or pass --no-mu)")
         offset = args.mu_offset % bank.num_trajectories if mu else args.mu_offset
@@ -242,17 +339,23 @@ def main(argv=None) -> int:
             "trajectories": bank.num_trajectories,
             "mu_offset": offset,
             "seed": args.seed,
-            "su_run": args.su,
+            "su_run": str(su_run) if su_run else None,
             "mu_run": args.mu,
             "date": time.strftime("%Y-%m-%d %H:%M"),
         }
         results = evaluate(su, mu, bank, floor, mu_offset=offset, seed=args.seed, progress=not args.quiet)
+        if args.procedural:
+            if not su_run:
+                raise ConfigError("--procedural needs a single-user policy (--su RUN or the shipped one)")
+            meta["procedural"] = procedural(su_run, args.procedural, seed=args.seed + 1)
     except (ConfigError, FileNotFoundError) as err:
         print(f"python -m train.evaluate: error: {err}", file=sys.stderr)
         return 2
     table, st = write_report(results, out, meta)
     print(_meta_text(meta))
     print(table)
+    if "procedural" in meta:
+        print(_procedural_text(meta["procedural"]))
     text = _stats_text(st)
     if text:
         print(text)

@@ -404,7 +404,7 @@ class Engine:
 
         # what drives the base
         def chase(ms):
-            ctx = Context(s.robot, pose, users, present, self.floor, self.grid, s.t, k_method)
+            ctx = Context(s.robot, pose, users, present, self.floor, self.grid, s.t, k_method, s.scan)
             return self.method.chase(ms, ctx)
 
         def idle(ms):

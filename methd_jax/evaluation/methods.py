@@ -24,9 +24,11 @@ from flax import struct
 from mujoco import mjx
 
 from methd_jax import floors
+from methd_jax.deploy.safety import SafetyConfig
+from methd_jax.evaluation import safety_layer
 from methd_jax.evaluation.navigator import Costmap
 from methd_jax.floors import Floor
-from methd_jax.geometry import KAIROS, wrap_angle
+from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
 from methd_jax.motion.features import CONTROL_HZ
 
 
@@ -42,6 +44,7 @@ class Context:
     grid: Costmap
     step: jax.Array  # () int32 steps since the episode began
     key: jax.Array
+    scan: jax.Array  # (R,) full-resolution ranges from the base's pose (what a safety layer sees)
 
 
 class Chase(NamedTuple):
@@ -165,10 +168,13 @@ class Policy:
 
     multi_user = True
 
-    def __init__(self, env, policy, name: str = "DRL"):
+    def __init__(self, env, policy, name: str = "DRL", safety: SafetyConfig | None = None):
+        """``safety``: put the deployment's safety layer (:mod:`.safety_layer`, the JAX twin of
+        :class:`methd_jax.deploy.safety.CollisionMonitor`) between the policy and the base."""
         self.env = env
         self.policy = policy
         self.name = name
+        self.safety = safety
         if env.config.num_users == 2 and env.guide_policy is None:
             raise ValueError("a two-user (NavRL) policy needs a GuideRL policy for its goal")
 
@@ -203,6 +209,17 @@ class Policy:
         obs, _, _ = self.env.observe(world, state.actions[0], k_obs, ctx.users)
         action = jnp.clip(self.policy(obs), -1.0, 1.0)
         command = self.env.command(action, state.actions[:2])
+        if self.safety is not None:
+            users_xy = ctx.users["pose"][:, :2]
+            command = safety_layer.filter_command(
+                command,
+                ctx.scan,
+                to_local(ctx.pose, users_xy),
+                rotate(-ctx.pose[2], ctx.users["vel_world"][:, :2]),
+                ctx.present,
+                self.env.config.safety.collision_distance,
+                self.safety,
+            )
         new = PolicyState(
             actions=jnp.concatenate([action[None], state.actions[:2]]),
             velocity=robot_lib.velocity(ctx.robot),

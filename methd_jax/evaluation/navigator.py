@@ -29,8 +29,9 @@ import numpy as np
 from flax import struct
 
 from methd_jax import floors
+from methd_jax.evaluation.safety_layer import obstacle_scale
 from methd_jax.floors import Floor
-from methd_jax.geometry import KAIROS, ray_angles, rotate, to_local, wrap_angle
+from methd_jax.geometry import rotate, wrap_angle
 from methd_jax.motion.features import CONTROL_HZ
 
 DT = 1.0 / CONTROL_HZ
@@ -281,19 +282,6 @@ def segment_clear(grid: Costmap, start: jax.Array, end: jax.Array, skip: float =
     return jnp.all(ok)
 
 
-def arc(command: jax.Array, t: jax.Array) -> jax.Array:
-    """Poses (x, y, yaw) ``(T, 3)`` reached from the origin after times ``t`` (T,) under a constant
-    robot-frame twist (vx, vy, wz)."""
-    vx, vy, wz = command[0], command[1], command[2]
-    th = wz * t
-    turning = jnp.abs(wz) > 1e-6
-    w = jnp.where(turning, wz, 1.0)
-    s, c = jnp.sin(th), jnp.cos(th)
-    x = jnp.where(turning, (vx * s + vy * (c - 1.0)) / w, vx * t)
-    y = jnp.where(turning, (vx * (1.0 - c) + vy * s) / w, vy * t)
-    return jnp.stack([x, y, th], -1)
-
-
 def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Array:
     """``command`` (robot frame) scaled by the largest factor in [0, 1] whose sweep over
     ``guard_horizon`` hits no scan point; ``ranges`` is a full-circle scan from the base's centre
@@ -305,17 +293,5 @@ def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Ar
     newly hit); points inside the margin are checked against the footprint itself, so the base may
     back away from a close wall but not drive into it.
     """
-    a = ray_angles(ranges.shape[0])  # numpy: constants in the compiled step, no trigonometry per call
-    directions = np.stack([np.cos(a), np.sin(a)], -1).astype(np.float32)
-    pts = jnp.where(jnp.isfinite(ranges), ranges, 1e3)[:, None] * directions
-    body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
-    half = body + cfg.guard_margin
-    in_body = jnp.all(jnp.abs(pts) <= body, -1)  # the scan is taken at the origin of the sweep
-    in_margin = jnp.all(jnp.abs(pts) <= half, -1) & ~in_body
-    steps = max(1, round(cfg.guard_horizon / DT))
-    poses = arc(command, DT * jnp.arange(1, steps + 1))
-    local = jnp.abs(jax.vmap(to_local, (0, None))(poses, pts))  # (T, P, 2), once for both boxes
-    hit = jnp.any(jnp.all(local <= half, -1) & ~in_body & ~in_margin, axis=1)
-    hit |= jnp.any(jnp.all(local <= body, -1) & in_margin, axis=1)
-    scale = jnp.where(jnp.any(hit), jnp.argmax(hit) / steps, 1.0)
+    scale = obstacle_scale(command, ranges, cfg.guard_horizon, DT, cfg.guard_margin)
     return command * scale
