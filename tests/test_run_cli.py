@@ -112,3 +112,45 @@ def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
     assert main(["nav", *TINY, f"guide_run={nav}", "--out", str(tmp_path / "x"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "not a guide policy" in err
+
+
+def test_max_minutes_ends_early_with_a_checkpoint_and_the_export(tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["quick", *TINY, "timesteps=400", "--out", str(run), "--quiet"]
+    assert main([*args, "--max-minutes", "1e-6"]) == 0  # out of time after the first iteration
+    rows = (run / "metrics.jsonl").read_text().splitlines()
+    assert len(rows) == 1 and (run / "checkpoints" / "1").is_dir()
+    assert export.load(run).manifest["trained"]["iteration"] == 1
+    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 0  # continues by one
+    assert len((run / "metrics.jsonl").read_text().splitlines()) == 2
+    assert main([*args[:-3], "--out", str(tmp_path / "b"), "--max-minutes", "0"]) == 2
+    assert "--max-minutes must be positive" in capsys.readouterr().err
+
+
+def test_init_from_starts_from_the_other_runs_learned_state(tmp_path, capsys):
+    import jax
+    from flax import traverse_util
+
+    from train import run as run_lib
+    from train.presets import apply_overrides, preset
+
+    source = tmp_path / "a"
+    assert main(["quick", *TINY, "--out", str(source), "--quiet"]) == 0
+    config = apply_overrides(preset("quick"), [*TINY, "env.weights.velocity=-0.6", f"init_from={source}"])
+    setup = run_lib.build(config)
+    fresh = jax.jit(setup.trainer.init)(jax.random.key(7))
+    warm = run_lib._warm_start(fresh, source)
+    exported = export.load(source)  # the source's final parameters and observation statistics
+    ours = traverse_util.flatten_dict(jax.device_get(warm.params), sep="/")
+    theirs = traverse_util.flatten_dict(jax.device_get(exported.params), sep="/")
+    assert set(theirs) <= set(ours)
+    for k, v in theirs.items():
+        np.testing.assert_array_equal(np.asarray(ours[k]), np.asarray(v), err_msg=k)
+    assert any(
+        not np.array_equal(np.asarray(ours[k]), np.asarray(v))
+        for k, v in traverse_util.flatten_dict(jax.device_get(fresh.params), sep="/").items()
+    )
+    assert int(warm.iteration) == 0  # a new run, not a resume
+    # a run whose network does not fit is refused in one line
+    assert main(["quick", *TINY, "hidden=16", f"init_from={source}", "--out", str(tmp_path / "b")]) == 2
+    assert "does not fit this run" in capsys.readouterr().err

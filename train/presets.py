@@ -67,6 +67,9 @@ class RunConfig:
     """``nav`` only: a ``guide`` run folder whose exported policy drives the goal (empty: scripted)."""
     checkpoint_every: int = 50
     """Iterations between checkpoints (one is always written at the end)."""
+    init_from: str = ""
+    """A run folder whose newest checkpoint starts this run: parameters, optimiser, observation and
+    value statistics (same network and observation size; environment and rewards may differ)."""
 
     def __post_init__(self):
         if self.env_name not in envs.PRESETS:
@@ -97,6 +100,10 @@ class RunConfig:
 
 
 _OPEN_FLOOR = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 0), num_polygons=(0, 0))
+_CPU_RAYS = 90
+# Up to 8 cylinders and 8 boxes/triangles: from an empty walled room to a cluttered one, each floor
+# drawn afresh; the capacity (8, 12, 4) holds the lab twin too, so both batch together.
+_CLUTTERED_FLOOR = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 8), num_polygons=(0, 8))
 
 PRESETS: dict[str, tuple[str, RunConfig]] = {
     "quick": (
@@ -116,6 +123,31 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
             ppo=PPOConfig(rollouts=32, minibatches=4),
             hidden=(128, 128, 128),
             checkpoint_every=100,
+        ),
+    ),
+    "su_cpu": (
+        "SU for the 2-core CPU: procedural floors with obstacles and the lab twin (30%), the 342 "
+        "training trajectories, 90 rays, a 3 x 256 body; 43M transitions, ~1.5 h (the shipped policy)",
+        RunConfig(
+            env_name="su",
+            env=dataclasses.replace(
+                envs.PRESETS["su"],
+                floor=_CLUTTERED_FLOOR,
+                lab_fraction=0.3,
+                motion="default",
+                num_rays=_CPU_RAYS,
+                weights=dataclasses.replace(
+                    envs.rewards.SU_WEIGHTS,
+                    velocity=-0.2,
+                    # p_i sums over rays: scaled so that 90 rays weigh what the thesis's 720 did
+                    inflation=envs.rewards.SU_WEIGHTS.inflation * 720 / _CPU_RAYS,
+                ),
+            ),
+            num_envs=256,
+            timesteps=168_000,
+            ppo=PPOConfig(rollouts=32, minibatches=4),
+            hidden=(256, 256, 256),
+            checkpoint_every=200,
         ),
     ),
     "su": ("single-user policy, Table 4.4 (2,048 envs, 960k timesteps)", RunConfig()),

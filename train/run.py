@@ -76,6 +76,29 @@ def build(config: RunConfig, devices=None) -> Setup:
     return Setup(config, env, spec, trainer)
 
 
+def _warm_start(state, source: Path):
+    """``state`` with the learned parts (parameters, optimiser, statistics, learning rate) of the
+    newest checkpoint of the run in ``source``; environments, key and iteration stay fresh."""
+    if not (source / "checkpoints").is_dir():
+        raise ConfigError(f"init_from={source}: not a run folder with checkpoints")
+    ckpts = Checkpoints(source / "checkpoints")
+    try:
+        if ckpts.latest() is None:
+            raise ConfigError(f"init_from={source}: no checkpoint there")
+        other = ckpts.restore(state)
+    except (ValueError, KeyError) as err:
+        raise ConfigError(f"init_from={source}: its checkpoint does not fit this run ({err})") from None
+    finally:
+        ckpts.close()
+    return state.replace(
+        params=other.params,
+        opt_state=other.opt_state,
+        obs_stats=other.obs_stats,
+        value_stats=other.value_stats,
+        learning_rate=other.learning_rate,
+    )
+
+
 def _symlog_curve(rows: list[dict], path: Path, title: str) -> None:
     """Mean episode return and mean reward per step against transitions (symlog, as the thesis plots
     rewards), and GuideRL's accuracy at the request when there is one."""
@@ -177,12 +200,15 @@ def train(
     resume: bool = False,
     progress: bool = True,
     stop_after: int | None = None,
+    max_minutes: float | None = None,
     devices=None,
 ) -> dict:
     """Train ``config`` into ``run_dir`` (resuming from its newest checkpoint if ``resume``).
 
     ``stop_after``: leave after this many iterations in total (for tests of interrupted runs); the
-    checkpoint schedule is unchanged. Returns the run's summary. Raises :class:`NonFiniteError`.
+    checkpoint schedule is unchanged. ``max_minutes``: end early, with a checkpoint and the export,
+    after the first iteration that finishes past this much wall time (``--resume`` continues).
+    Returns the run's summary. Raises :class:`NonFiniteError`.
     """
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
@@ -205,6 +231,9 @@ def train(
     state = init(jax.random.key(config.seed))
     ckpts = Checkpoints(run_dir / "checkpoints")
     start = 0
+    if config.init_from and not resume:
+        state = _warm_start(state, Path(config.init_from))
+        log(f"started from the newest checkpoint of {config.init_from}")
     if resume:
         state = ckpts.restore(state)
         start = int(state.iteration)
@@ -270,10 +299,14 @@ def train(
                 post["acc"] = f"{100 * m['guide/accuracy']:.0f}%"
             bar.set_postfix(post, refresh=False)
             bar.update(per)
-            if (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations:
+            out_of_time = max_minutes is not None and time.perf_counter() - t_begin >= 60 * max_minutes
+            if (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations or out_of_time:
                 ckpts.save(it + 1, state)
                 last_saved = it + 1
                 _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
+            if out_of_time:
+                log(f"stopping after iteration {it + 1}: the {max_minutes:g}-minute budget is spent")
+                break
     finally:
         bar.close()
         writer.close()
@@ -331,6 +364,12 @@ def main(argv=None) -> int:
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="options to change (listed below)")
     parser.add_argument("--out", type=Path, help="run folder (default: runs/<preset>-<date>-<time>)")
     parser.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue the run in RUN_DIR")
+    parser.add_argument(
+        "--max-minutes",
+        type=float,
+        metavar="M",
+        help="end early (checkpoint and export) after the iteration that passes M minutes of wall time",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     overrides = list(args.overrides)
@@ -338,6 +377,8 @@ def main(argv=None) -> int:
         overrides.insert(0, args.preset)
         args.preset = "quick"
     try:
+        if args.max_minutes is not None and not args.max_minutes > 0:
+            raise ConfigError(f"--max-minutes must be positive, got {args.max_minutes}")
         if args.resume is not None:
             if overrides or args.out is not None:
                 raise ConfigError("--resume continues a run as configured; start a new run to change options")
@@ -358,6 +399,7 @@ def main(argv=None) -> int:
             overrides=tuple(overrides),
             resume=args.resume is not None,
             progress=not args.quiet,
+            max_minutes=args.max_minutes,
         )
     except (ConfigError, FileNotFoundError) as err:
         print(f"python -m train.run: error: {err}", file=sys.stderr)
