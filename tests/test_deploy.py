@@ -20,6 +20,7 @@ from envs.nav import NavConfig, NavEnv
 from methd_jax import deploy, lidar, ros_messages
 from methd_jax import robot as robot_lib
 from methd_jax.deploy import mcap_replay, observation, ros_node
+from methd_jax.deploy.controller import clamp_to_limits
 from methd_jax.deploy.mcap_replay import read_inputs
 from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig, arc
 from methd_jax.geometry import KAIROS
@@ -120,7 +121,7 @@ def _inputs(env, state) -> deploy.Inputs:
 
 def test_controller_matches_the_jax_policy_in_the_training_env(su_deploy, su_env):
     """50 Hz in lockstep: the controller rebuilds the env's observation from raw inputs (noise off)
-    and its command equals the env's command for the JAX policy's action."""
+    and its command equals the env's command for the JAX policy's action, within the base's limits."""
     policy = export.load(su_deploy)
     controller = deploy.Controller(su_deploy, safety=SafetyConfig(enabled=False))
     step = jax.jit(su_env.step)
@@ -128,7 +129,8 @@ def test_controller_matches_the_jax_policy_in_the_training_env(su_deploy, su_env
     for _ in range(40):
         w = state.pipeline_state
         action = policy(state.obs)
-        expected_cmd = np.asarray(su_env.command(action, w.actions))
+        # the base clips its speed to its limits in the simulator; the controller does so before sending
+        expected_cmd = clamp_to_limits(np.asarray(su_env.command(action, w.actions)))
         out = controller.tick(_inputs(su_env, state))
         assert out.reason is None
         np.testing.assert_allclose(out.twist, expected_cmd, atol=1e-5, rtol=0)
@@ -330,6 +332,10 @@ def _good(n_users: int = 1) -> deploy.Inputs:
         ({"users": np.zeros((2, 6))}, 10.0, "watchdog:shape_users"),
         ({"velocity": np.array([0.0, np.inf, 0.0])}, 10.0, "watchdog:nan_velocity"),
         ({"acceleration": np.zeros(2)}, 10.0, "watchdog:shape_acceleration"),
+        ({"ranges": np.zeros(720)}, 10.0, "watchdog:zero_ranges"),
+        ({"scan_stamp": 110.0}, 10.0, "watchdog:stale_scan"),  # from the future
+        ({"odom_stamp": float("inf")}, 10.0, "watchdog:stale_odom"),
+        ({"users_stamp": 15.0}, 10.0, "watchdog:stale_users"),  # a clock that jumped back 5 s
     ],
 )
 def test_watchdog_stops_on_bad_inputs(su_deploy, change, now, reason):
@@ -339,6 +345,79 @@ def test_watchdog_stops_on_bad_inputs(su_deploy, change, now, reason):
     assert out.reason == reason and not np.any(out.twist) and not np.any(out.policy)
     assert c.interventions[reason] == 1
     assert not np.any(c.actions)  # the history restarts from a standstill
+
+
+def _tampered(src, tmp_path, edit=None, files=None):
+    """A copy of the deployment folder ``src`` with ``edit(manifest)`` applied and ``files``
+    (name -> bytes) overwritten."""
+    import shutil
+
+    out = tmp_path / "tampered"
+    shutil.copytree(src, out)
+    if edit is not None:
+        m = json.loads((out / "manifest.json").read_text())
+        edit(m)
+        (out / "manifest.json").write_text(json.dumps(m))
+    for name, data in (files or {}).items():
+        (out / name).write_bytes(data)
+    return out
+
+
+def _set(path, value):
+    def edit(m):
+        *keys, last = path
+        for k in keys:
+            m = m[k]
+        m[last] = value
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    "edit, files, message",
+    [
+        (_set(["params_sha256"], "0" * 64), None, "does not match the manifest's params_sha256"),
+        (_set(["deployment", "lidar", "num_rays"], 360), None, "disagrees with the network"),
+        (_set(["deployment", "footprint", "length"], 0.0), None, "is not the base's"),
+        (_set(["deployment", "action", "scale"], [300, 300, 200]), None, "exceeds the base's limits"),
+        (_set(["deployment", "control_hz"], 0), None, "control_hz must be positive"),
+        (lambda m: m["deployment"].pop("footprint"), None, "missing or malformed field"),
+        (None, {"manifest.json": b"{not json"}, "not valid JSON"),
+        (None, {"params.npz": b"PK\x03\x04 truncated"}, "params.npz: unreadable"),
+        (None, {"policy.onnx": b""}, "not a loadable ONNX model"),
+        (None, {"policy.onnx": bytes(range(256)) * 8}, "not a loadable ONNX model"),
+    ],
+)
+def test_a_folder_that_cannot_be_trusted_is_refused(su_deploy, tmp_path, edit, files, message):
+    folder = _tampered(su_deploy, tmp_path, edit, files)
+    with pytest.raises(deploy.DeployError, match=message):
+        deploy.Controller(folder)
+
+
+def test_params_of_another_run_are_refused(su_deploy, tmp_path, su_env):
+    other = tmp_path / "other"
+    export_random_policy(other, su_env, "su", networks.ActorCritic(num_rays=720), seed=4)
+    folder = _tampered(
+        su_deploy, tmp_path, files={"params.npz": (other / "policy" / "params.npz").read_bytes()}
+    )
+    with pytest.raises(deploy.DeployError, match="params_sha256"):
+        deploy.Controller(folder, backend="numpy")
+
+
+def test_no_command_beyond_the_robots_limits(su_deploy):
+    from methd_jax.deploy.policy import ROBOT_FOOTPRINT, ROBOT_LIMITS
+
+    # the deploy side's own constants are the simulator's robot
+    assert ROBOT_LIMITS == (robot_lib.RobotConfig().max_speed, robot_lib.RobotConfig().max_yaw_rate)
+    assert ROBOT_FOOTPRINT == (KAIROS.length, KAIROS.width)
+    out = clamp_to_limits(np.array([224.0, -224.0, -50.0]))
+    assert math.isclose(math.hypot(out[0], out[1]), 3.0) and out[0] == -out[1] and out[2] == -2.0
+    np.testing.assert_array_equal(clamp_to_limits(np.array([1.0, 0.5, 0.3])), [1.0, 0.5, 0.3])
+    c = deploy.Controller(su_deploy, backend="numpy", safety=SafetyConfig(enabled=False))
+    c.policy = lambda obs: np.ones(3, np.float32)  # a policy gone wild: full speed in every axis
+    for _ in range(5):
+        twist = c.tick(_good()).twist
+        assert math.hypot(twist[0], twist[1]) <= 3.0 + 1e-9 and abs(twist[2]) <= 2.0 + 1e-9
 
 
 def test_watchdog_catches_a_failing_policy(su_deploy):

@@ -18,7 +18,6 @@ observation clip, and where and when it was trained. :func:`load` gives a determ
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import importlib.metadata
 import json
 import logging
@@ -35,6 +34,7 @@ from flax import traverse_util
 
 import networks
 from methd_jax.cli import OneLineParser
+from methd_jax.deploy.policy import params_sha256
 from methd_jax.geometry import KAIROS
 from methd_jax.motion.features import CONTROL_HZ
 
@@ -233,16 +233,6 @@ def deployment_section(manifest: dict) -> dict:
         "critical_distance": safety["critical_distance"],
         "encoder_strides": list(networks.actor_critic.ENCODER_STRIDES),
     }
-
-
-def params_sha256(params_npz: str | Path) -> str:
-    """SHA-256 over the arrays of a ``params.npz`` (names sorted, raw float32 bytes): stable across
-    rewrites of the zip file."""
-    digest = hashlib.sha256()
-    with np.load(params_npz) as data:
-        for k in sorted(data.files):
-            digest.update(k.encode() + b"\0" + np.ascontiguousarray(data[k], np.float32).tobytes())
-    return digest.hexdigest()
 
 
 def versions() -> dict:

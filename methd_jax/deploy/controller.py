@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from methd_jax.deploy import observation
-from methd_jax.deploy.policy import DeployError, NumpyPolicy, OnnxPolicy, load_manifest
+from methd_jax.deploy.policy import ROBOT_LIMITS, DeployError, NumpyPolicy, OnnxPolicy, load_manifest
 from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
 
 
@@ -129,12 +129,15 @@ class Controller:
                     return "nan_ranges"
                 if (value < 0).any():
                     return "negative_ranges"
+                if np.mean(value == 0) > 0.5:  # a blinded or failed sensor, not a scene
+                    return "zero_ranges"
             elif not np.isfinite(value).all():
                 return f"nan_{name}"
         if now is not None:
             for name in ("scan", "odom", "users"):
                 stamp = getattr(x, f"{name}_stamp")
-                if stamp is not None and not (now - stamp <= self.watchdog.max_age):
+                # a stamp from the future (beyond clock jitter) is as untrustworthy as an old one
+                if stamp is not None and not (-self.watchdog.max_age <= now - stamp <= self.watchdog.max_age):
                     return f"stale_{name}"
         return None
 
@@ -174,6 +177,7 @@ class Controller:
             local = observation.to_local(pose, users[:, :2])
             local_vel = observation.rotate(-pose[2], users[:, 3:5])
             safe, reason = self.monitor(cmd, np.asarray(x.ranges, np.float64), local, local_vel)
+            safe = clamp_to_limits(safe)
             if reason is not None:
                 self.interventions[f"safety:{reason}"] += 1
                 reason = f"safety:{reason}"
@@ -186,6 +190,15 @@ class Controller:
         self.reset()
         zero = np.zeros(3)
         return Command(zero, zero, reason)
+
+
+def clamp_to_limits(twist: np.ndarray) -> np.ndarray:
+    """``twist`` (vx, vy, wz) within the base's limits: the linear speed scaled down to its top speed
+    (direction kept), the yaw rate clipped; whatever a manifest or a policy says."""
+    twist = np.asarray(twist, np.float64)
+    speed = math.hypot(twist[0], twist[1])
+    linear = twist[:2] * min(1.0, ROBOT_LIMITS[0] / speed) if speed > 0 else twist[:2]
+    return np.array([linear[0], linear[1], np.clip(twist[2], -ROBOT_LIMITS[1], ROBOT_LIMITS[1])])
 
 
 def latency(controller: Controller, ticks: int = 2000, seed: int = 0) -> dict:

@@ -6,7 +6,9 @@ Both take raw observations ``(D,)`` or ``(B, D)`` and return the deterministic a
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -18,24 +20,89 @@ class DeployError(ValueError):
     """A deployment folder or input that cannot be used (the message says why)."""
 
 
+ROBOT_FOOTPRINT = (1.13, 0.91)
+"""The base's footprint, length x width (m): a manifest must describe this robot."""
+ROBOT_LIMITS = (3.0, 2.0)
+"""The base's top linear speed (m/s) and yaw rate (rad/s): no command goes beyond them."""
+
+
+def params_sha256(params_npz: str | Path) -> str:
+    """SHA-256 over the arrays of a ``params.npz`` (names sorted, raw float32 bytes): stable across
+    rewrites of the zip file."""
+    digest = hashlib.sha256()
+    with np.load(params_npz) as data:
+        for k in sorted(data.files):
+            digest.update(k.encode() + b"\0" + np.ascontiguousarray(data[k], np.float32).tobytes())
+    return digest.hexdigest()
+
+
 def load_manifest(path: str | Path) -> dict:
-    """The manifest of a deployment folder written by ``python -m train.export``."""
+    """The manifest of a deployment folder written by ``python -m train.export``, refused with a
+    :class:`DeployError` unless it can be trusted to drive this robot: readable, its parameters the
+    ones it was exported with (SHA-256), its ray count the network's, its control rate, footprint
+    and action scale those of the base."""
     path = Path(path)
     if (path / "deploy" / "manifest.json").exists():
         path = path / "deploy"
     file = path / "manifest.json"
     if not file.exists():
         raise DeployError(f"{path} holds no exported policy (manifest.json is missing)")
-    manifest = json.loads(file.read_text())
-    if manifest.get("format") != FORMAT:
-        raise DeployError(f"{file}: unknown policy format {manifest.get('format')!r}, expected {FORMAT!r}")
+    try:
+        manifest = json.loads(file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DeployError(f"{file}: not valid JSON ({e})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        got = manifest.get("format") if isinstance(manifest, dict) else None
+        raise DeployError(f"{file}: unknown policy format {got!r}, expected {FORMAT!r}")
     if "deployment" not in manifest:
         raise DeployError(
             f"{path} is a training export without a deployment section; run `python -m train.export "
             f"{path.parent if path.name == 'policy' else path}` first"
         )
+    try:
+        _check(manifest, path)
+    except (KeyError, TypeError, ValueError) as e:
+        if isinstance(e, DeployError):
+            raise
+        raise DeployError(f"{file}: missing or malformed field ({type(e).__name__}: {e})") from None
     manifest["_dir"] = str(path)
     return manifest
+
+
+def _check(manifest: dict, path: Path) -> None:
+    """The checks of :func:`load_manifest` (KeyError / TypeError / ValueError on a malformed field)."""
+    file = path / "manifest.json"
+    try:
+        digest = params_sha256(path / "params.npz")
+    except FileNotFoundError:
+        raise DeployError(f"{path / 'params.npz'} is missing") from None
+    except Exception as e:  # a truncated or foreign zip: numpy and zipfile raise many kinds
+        raise DeployError(f"{path / 'params.npz'}: unreadable ({type(e).__name__})") from None
+    if digest != manifest.get("params_sha256"):
+        raise DeployError(
+            f"{path / 'params.npz'} does not match the manifest's params_sha256 (another run's?)"
+        )
+    d = manifest["deployment"]
+    hz = float(d["control_hz"])
+    if not (math.isfinite(hz) and hz > 0):
+        raise DeployError(f"{file}: control_hz must be positive, got {d['control_hz']!r}")
+    if manifest["env"] == "guide":
+        return
+    rays = d["lidar"]["num_rays"]
+    if manifest["network"].get("num_rays") != rays or manifest["observation_layout"]["lidar"] != [0, rays]:
+        raise DeployError(f"{file}: lidar.num_rays {rays!r} disagrees with the network's observation")
+    fp = d["footprint"]
+    if not np.allclose([fp["length"], fp["width"]], ROBOT_FOOTPRINT, atol=1e-3):
+        raise DeployError(
+            f"{file}: footprint {fp['length']} x {fp['width']} m is not the base's "
+            f"{ROBOT_FOOTPRINT[0]} x {ROBOT_FOOTPRINT[1]} m"
+        )
+    scale = np.asarray(d["action"]["scale"], float)
+    limit = np.array([ROBOT_LIMITS[0], ROBOT_LIMITS[0], ROBOT_LIMITS[1]])
+    if scale.shape != (3,) or not np.all((scale > 0) & (scale <= limit + 1e-9)):
+        raise DeployError(
+            f"{file}: action.scale {d['action']['scale']} exceeds the base's limits {limit.tolist()}"
+        )
 
 
 def elu(x: np.ndarray) -> np.ndarray:
@@ -107,7 +174,13 @@ class OnnxPolicy:
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
-        self.session = ort.InferenceSession(str(file), options, providers=["CPUExecutionProvider"])
+        try:
+            self.session = ort.InferenceSession(str(file), options, providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own exception types for a corrupt model
+            raise DeployError(f"{file}: not a loadable ONNX model ({type(e).__name__})") from None
+        size = self.session.get_inputs()[0].shape[-1]
+        if size != manifest["observation_size"]:
+            raise DeployError(f"{file} takes {size} inputs; the manifest says {manifest['observation_size']}")
         self.input = self.session.get_inputs()[0].name
         self.manifest = manifest
 
