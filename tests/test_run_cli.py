@@ -154,3 +154,16 @@ def test_init_from_starts_from_the_other_runs_learned_state(tmp_path, capsys):
     # a run whose network does not fit is refused in one line
     assert main(["quick", *TINY, "hidden=16", f"init_from={source}", "--out", str(tmp_path / "b")]) == 2
     assert "does not fit this run" in capsys.readouterr().err
+
+
+def test_out_never_overwrites_what_a_user_has(tmp_path, capsys):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "README.md").write_text("my notes")
+    assert main(["quick", *TINY, "--out", str(mine), "--quiet"]) == 2
+    assert "is not an empty folder" in capsys.readouterr().err
+    assert (mine / "README.md").read_text() == "my notes" and sorted(mine.iterdir()) == [mine / "README.md"]
+    afile = tmp_path / "file"
+    afile.write_text("x")
+    assert main(["quick", *TINY, "--out", str(afile), "--quiet"]) == 2
+    assert afile.read_text() == "x"

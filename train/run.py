@@ -388,10 +388,9 @@ def main(argv=None) -> int:
             name = args.preset
             config = apply_overrides(preset(name), overrides)
             run_dir = args.out or Path("runs") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
-            if (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
-                raise ConfigError(
-                    f"{run_dir} already holds checkpoints; use --resume {run_dir} or another --out"
-                )
+            if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+                what = "holds checkpoints" if (run_dir / "checkpoints").is_dir() else "is not an empty folder"
+                raise ConfigError(f"{run_dir} {what}; use --resume {run_dir} or another --out")
         train(
             config,
             run_dir,
