@@ -162,9 +162,21 @@ def test_default_dataset_is_cached(tmp_path):
 # --- recordings made by someone else --------------------------------------------------------------
 
 
-def _write_foreign(path, *, head=None, wrist=None, request=None, rate=120.0, n=600, clock_offset_ns=0):
+def _write_foreign(
+    path,
+    *,
+    head=None,
+    wrist=None,
+    request=None,
+    rate=120.0,
+    n=600,
+    clock_offset_ns=0,
+    wrist_offset_ns=0,
+    gap=None,
+):
     """A bag as a ROS 2 recorder would write it: 120 Hz, header stamps on the sensor clock, log
-    times on the recorder's clock, one True on /haptic_request, wrist stamps 3 ms after the head's."""
+    times on the recorder's clock, one True on /haptic_request, wrist stamps 3 ms after the head's
+    (plus ``wrist_offset_ns``); ``gap = (i, seconds)`` delays every message from the i-th on."""
     t = np.arange(n) / rate
     yaw = 0.3 * t
     default = np.concatenate(
@@ -178,8 +190,8 @@ def _write_foreign(path, *, head=None, wrist=None, request=None, rate=120.0, n=6
         ps = w.register_msgdef("geometry_msgs/msg/PoseStamped", bags.POSE_STAMPED_MSGDEF)
         bs = w.register_msgdef("std_msgs/msg/Bool", bags.BOOL_MSGDEF)
         for i in range(n):
-            ns = start + round(t[i] * 1e9)
-            for topic, arr, lag in (("/head", head, 0), ("/wrist", wrist, 3_000_000)):
+            ns = start + round(t[i] * 1e9) + (round(gap[1] * 1e9) if gap and i >= gap[0] else 0)
+            for topic, arr, lag in (("/head", head, 0), ("/wrist", wrist, 3_000_000 + wrist_offset_ns)):
                 if arr is False:
                     continue
                 p = arr[i]
@@ -198,7 +210,10 @@ def _write_foreign(path, *, head=None, wrist=None, request=None, rate=120.0, n=6
             k = int(0.8 * n) if request is None else request
             lag = clock_offset_ns + 2_000_000  # the recorder's clock and delay, as for the poses
             w.write_message("/haptic_request", bs, {"data": False}, log_time=start + lag)
-            w.write_message("/haptic_request", bs, {"data": True}, log_time=start + round(t[k] * 1e9) + lag)
+            late = round(gap[1] * 1e9) if gap and k >= gap[0] else 0
+            w.write_message(
+                "/haptic_request", bs, {"data": True}, log_time=start + round(t[k] * 1e9) + lag + late
+            )
         w.finish()
     return t, head
 
@@ -359,3 +374,30 @@ def test_cli_errors_are_one_line(tmp_path):
         assert run.returncode == 2, run.stderr
         lines = [line for line in run.stderr.splitlines() if line.startswith("error:")]
         assert len(lines) == 1 and "Traceback" not in run.stderr
+
+
+def test_data_that_would_load_silently_wrong_is_refused_or_repaired(tmp_path):
+    n = 600
+    t = np.arange(n) / 120.0
+    head = np.concatenate([np.stack([0.5 * t, 0 * t, 0 * t + 1.7], 1), quat_from_yaw_pitch(0 * t, 0 * t)], 1)
+    zero_q = head.copy()
+    zero_q[200, 3:] = 0.0
+    _write_foreign(tmp_path / "zeroq.mcap", head=zero_q)
+    with pytest.raises(MotionDataError, match=r"zeroq\.mcap: /head pose 200 has no valid orientation"):
+        motion.load(tmp_path / "zeroq.mcap")
+    _write_foreign(tmp_path / "wrist.mcap", wrist_offset_ns=1000 * 10**9)
+    with pytest.raises(MotionDataError, match=r"wrist\.mcap: /wrist stamps cover 0 s of /head's"):
+        motion.load(tmp_path / "wrist.mcap")
+    for seconds in (1e4, 4e8):
+        _write_foreign(tmp_path / "gap.mcap", gap=(300, seconds))
+        with pytest.raises(MotionDataError, match=r"gap\.mcap: /head has a gap of .* s before message 300"):
+            motion.load(tmp_path / "gap.mcap")
+    # a glitch in the very first sample is repaired, not taken as the track
+    first = head.copy()
+    first[0, 0] += 1e9
+    _write_foreign(tmp_path / "first.mcap", head=first)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        (traj,) = motion.load(tmp_path / "first.mcap")
+    assert any("repaired 1 tracking glitch" in str(w.message) for w in caught)
+    np.testing.assert_allclose(traj.head[1:, 0], 0.5 * traj.time[1:], atol=1e-6)

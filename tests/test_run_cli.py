@@ -167,3 +167,18 @@ def test_out_never_overwrites_what_a_user_has(tmp_path, capsys):
     afile.write_text("x")
     assert main(["quick", *TINY, "--out", str(afile), "--quiet"]) == 2
     assert afile.read_text() == "x"
+
+
+def test_bad_motion_data_is_one_line_in_train_and_evaluate(tmp_path, capsys):
+    from train import evaluate
+
+    bags = tmp_path / "bags"
+    bags.mkdir()
+    (bags / "a.mcap").write_text("not a bag")
+    assert main(["quick", *TINY, f"env.motion={bags}", "--out", str(tmp_path / "r"), "--quiet"]) == 2
+    assert (
+        evaluate.main(["--motion", str(bags), "--no-pretrained", "--out", str(tmp_path / "e"), "--quiet"])
+        == 2
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("a.mcap: not an MCAP file" in line for line in err), err

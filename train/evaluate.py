@@ -25,6 +25,7 @@ from methd_jax.deploy.safety import SafetyConfig
 from methd_jax.evaluation import engine as eng
 from methd_jax.evaluation import methods, metrics, plots, stats
 from methd_jax.floors import FloorConfig
+from methd_jax.motion import MotionDataError
 from methd_jax.motion.dataset import progress_bar
 from methd_jax.motion.features import CONTROL_HZ, HipConfig
 from train import export
@@ -348,7 +349,7 @@ def main(argv=None) -> int:
             if not su_run:
                 raise ConfigError("--procedural needs a single-user policy (--su RUN or the shipped one)")
             meta["procedural"] = procedural(su_run, args.procedural, seed=args.seed + 1)
-    except (ConfigError, FileNotFoundError) as err:
+    except (ConfigError, FileNotFoundError, MotionDataError) as err:
         print(f"python -m train.evaluate: error: {err}", file=sys.stderr)
         return 2
     table, st = write_report(results, out, meta)

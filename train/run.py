@@ -24,6 +24,7 @@ import networks
 from envs.guide import GuideEnv
 from envs.nav import NavEnv
 from methd_jax.cli import OneLineParser
+from methd_jax.motion import MotionDataError
 from train import export
 from train.checkpoint import Checkpoints
 from train.ppo import Trainer
@@ -400,7 +401,7 @@ def main(argv=None) -> int:
             progress=not args.quiet,
             max_minutes=args.max_minutes,
         )
-    except (ConfigError, FileNotFoundError) as err:
+    except (ConfigError, FileNotFoundError, MotionDataError) as err:
         print(f"python -m train.run: error: {err}", file=sys.stderr)
         return 2
     except NonFiniteError as err:

@@ -103,6 +103,10 @@ class _Topic:
         self.values: list = []
 
 
+MAX_GAP = 1.0
+"""Longest gap between two poses of a topic that is interpolated, s (100 Hz tracking)."""
+
+
 def _assemble(name: str, topics: dict[str, _Topic], label: str) -> Trajectory:
     """Validates decoded messages and resamples them onto a uniform 100 Hz grid.
 
@@ -121,11 +125,32 @@ def _assemble(name: str, topics: dict[str, _Topic], label: str) -> Trajectory:
                 f"{label}: {topic} timestamps go backwards (or repeat) at message {i} "
                 f"({stamps[i - 1]} ns then {stamps[i]} ns)"
             )
+        gaps = np.diff(stamps) / 1e9
+        if gaps.size and gaps.max() > MAX_GAP:
+            i = int(np.argmax(gaps)) + 1
+            raise MotionDataError(
+                f"{label}: {topic} has a gap of {gaps.max():.3g} s before message {i} (more than "
+                f"{MAX_GAP} s cannot be interpolated)"
+            )
         poses = np.asarray(topics[topic].values, np.float64)
         bad = np.flatnonzero(~np.all(np.isfinite(poses), axis=1))
         if bad.size:
             raise MotionDataError(f"{label}: {topic} pose {int(bad[0])} is not finite (NaN or inf)")
+        norms = np.linalg.norm(poses[:, 3:], axis=1)
+        bad = np.flatnonzero((norms < 0.5) | (norms > 2.0))
+        if bad.size:
+            raise MotionDataError(
+                f"{label}: {topic} pose {int(bad[0])} has no valid orientation "
+                f"(quaternion norm {norms[bad[0]]:.3g})"
+            )
         series[topic] = (stamps, poses)
+    (head_s, _), (wrist_s, _) = series["/head"], series["/wrist"]
+    overlap = min(head_s[-1], wrist_s[-1]) - max(head_s[0], wrist_s[0])
+    if overlap < 0.5 * (head_s[-1] - head_s[0]):
+        raise MotionDataError(
+            f"{label}: /wrist stamps cover {max(overlap, 0) / 1e9:.3g} s of /head's "
+            f"{(head_s[-1] - head_s[0]) / 1e9:.3g} s (offset by {(wrist_s[0] - head_s[0]) / 1e9:.3g} s?)"
+        )
     requests = [
         log
         for log, v in zip(topics["/haptic_request"].log, topics["/haptic_request"].values, strict=True)

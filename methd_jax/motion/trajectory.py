@@ -84,14 +84,21 @@ def repair_glitches(name: str, time: np.ndarray, poses: np.ndarray, topic: str) 
     Positions are interpolated linearly and orientations by normalised linear interpolation between
     the good samples around each glitch. Emits one :class:`TrackingGlitchWarning` with the count.
     """
+
+    def plausible(a, b):
+        return np.linalg.norm(poses[b, :2] - poses[a, :2]) <= GLITCH_SPEED * abs(time[b] - time[a]) + 1e-9
+
+    # the anchor is the first sample that its next two agree with, so that a glitch in the very
+    # first samples is judged against the track rather than the track against the glitch
+    anchor = next((i for i in range(len(time) - 2) if plausible(i, i + 1) and plausible(i + 1, i + 2)), 0)
     good = np.ones(len(time), bool)
-    last = 0
-    for i in range(1, len(time)):
-        dt = time[i] - time[last]
-        if np.linalg.norm(poses[i, :2] - poses[last, :2]) > GLITCH_SPEED * dt + 1e-9:
-            good[i] = False
-        else:
-            last = i
+    for order in (range(anchor + 1, len(time)), range(anchor - 1, -1, -1)):
+        last = anchor
+        for i in order:
+            if plausible(last, i):
+                last = i
+            else:
+                good[i] = False
     bad = int((~good).sum())
     if bad == 0:
         return poses
