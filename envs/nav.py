@@ -34,6 +34,7 @@ range < b_r) or a user (d_u < 1.37 m) terminates with its penalty; the time limi
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 
 import jax
@@ -130,6 +131,33 @@ class NavConfig:
     """The request fires up to this many seconds before the trajectory's own request, s."""
 
     def __post_init__(self):
+        for name in ("num_users", "num_rays", "spawn_candidates", "action_latency"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise ValueError(f"{name} must be an integer, got {value!r}")
+        for name in ("lab", "users_visible", "randomize_dynamics"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.type == "float" or f.type.startswith("tuple[float"):
+                values = value if isinstance(value, tuple) else (value,)
+                if not all(isinstance(x, int | float) and math.isfinite(x) for x in values):
+                    raise ValueError(f"{f.name} must be finite numbers, got {value!r}")
+        if not 0.0 <= self.lidar_dropout <= 1.0:
+            raise ValueError(f"lidar_dropout must be in [0, 1], got {self.lidar_dropout}")
+        for name in ("lidar_noise", "spawn_margin", "goal_tolerance", "goal_deadzone", "goal_yaw_deadzone"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("mass_scale", "force_scale", "goal_switch_time"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"{name} must be an ordered positive range, got {(lo, hi)}")
+        if abs(self.robot.control_dt * CONTROL_HZ - 1.0) > 1e-9:
+            raise ValueError(
+                f"robot.control_dt must be the control period 1/{CONTROL_HZ:g} s (the motion data, "
+                f"rewards and evaluation run at {CONTROL_HZ:g} Hz), got {self.robot.control_dt}"
+            )
         if self.num_users < 1:
             raise ValueError(f"num_users must be at least 1, got {self.num_users}")
         if self.split not in ("train", "test", "all"):

@@ -356,6 +356,10 @@ def _generate_batch(key, n, cfg):
 # The lab twin
 
 
+MAX_ROOM = 1000.0
+"""Largest side of a floor read from a file, m (float32 keeps millimetres up to about this size)."""
+
+
 def lab(path: str | Path = LAB_ASSET, **capacity) -> Floor:
     """The 11 m x 13 m lab twin from its JSON asset (see ``assets/README.md`` for the layout).
 
@@ -369,12 +373,25 @@ def lab(path: str | Path = LAB_ASSET, **capacity) -> Floor:
     except json.JSONDecodeError as e:
         raise FloorSpecError(f"{path}: not valid JSON ({e})") from None
     try:
-        size = spec["size"]
+        size, thickness, obstacles = spec["size"], spec["wall_thickness"], spec["obstacles"]
+        ok_size = (
+            isinstance(size, list)
+            and len(size) == 2
+            and all(isinstance(v, int | float) and 1.0 <= v <= MAX_ROOM for v in size)
+        )
+        if not ok_size:
+            raise FloorSpecError(
+                f"{path}: size must be two side lengths in [1, {MAX_ROOM:g}] m, got {size!r}"
+            )
+        if not (isinstance(thickness, int | float) and 0 <= thickness <= 10):
+            raise FloorSpecError(f"{path}: wall_thickness must be in [0, 10] m, got {thickness!r}")
+        if not (isinstance(obstacles, list) and all(isinstance(o, dict) for o in obstacles)):
+            raise FloorSpecError(f"{path}: obstacles must be a list of objects, got {obstacles!r}")
         half = 0.5 * np.asarray(size, np.float64)
         bounds = np.concatenate([-half, half])
         circles = [o["circle"] for o in spec["obstacles"] if "circle" in o]
         polygons = [o["polygon"] for o in spec["obstacles"] if "polygon" in o]
-        polygons += [p.tolist() for p in np.asarray(walls(jnp.asarray(bounds), spec["wall_thickness"]))]
+        polygons += [p.tolist() for p in np.asarray(walls(jnp.asarray(bounds), thickness))]
     except (KeyError, TypeError) as e:
         raise FloorSpecError(f"{path}: missing or malformed field {e}") from None
     try:

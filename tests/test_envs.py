@@ -7,7 +7,7 @@ import pytest
 
 import envs
 from envs import guide as guide_lib
-from envs.nav import observation_layout
+from envs.nav import NavConfig, observation_layout
 from methd_jax import floors, motion
 from methd_jax import robot as robot_lib
 from methd_jax.floors import FloorConfig
@@ -407,3 +407,30 @@ def test_lab_fraction_mixes_the_lab_twin_with_procedural_floors(bank):
     assert float(sdf.min()) >= 0.82 - 1e-4  # spawned clear on either kind of floor
     with pytest.raises(ValueError, match="lab_fraction must be in"):
         envs.make("su", bank=bank, lab_fraction=1.5)
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        ({"lidar_dropout": 1.5}, "lidar_dropout must be in"),
+        ({"lidar_noise": float("nan")}, "lidar_noise must be finite"),
+        ({"lidar_noise": -0.03}, "lidar_noise must be >= 0"),
+        ({"spawn_margin": float("nan")}, "spawn_margin must be finite"),
+        ({"action_weights": (float("nan"), 0.5, 0.5)}, "action_weights must be finite"),
+        ({"goal_tolerance": -0.2}, "goal_tolerance must be >= 0"),
+        ({"mass_scale": (-1.0, 1.3)}, "mass_scale must be an ordered positive range"),
+        ({"lab": "no"}, "lab must be true or false"),
+        ({"num_rays": "90"}, "num_rays must be an integer"),
+        ({"num_rays": 90.5}, "num_rays must be an integer"),
+    ],
+)
+def test_invalid_options_are_refused_by_name(option, message):
+    with pytest.raises(ValueError, match=message):
+        NavConfig(**option)
+
+
+def test_a_control_period_other_than_the_data_rate_is_refused():
+    import dataclasses as dc
+
+    with pytest.raises(ValueError, match=r"robot\.control_dt must be the control period"):
+        NavConfig(robot=dc.replace(robot_lib.RobotConfig(), control_dt=0.015))

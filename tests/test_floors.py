@@ -217,3 +217,21 @@ def test_mjcf_export_uses_the_right_geoms():
     assert [mujoco.mjtGeom(t).name for t in caps.geom_type].count("mjGEOM_CAPSULE") == 12
     with pytest.raises(ValueError, match="circle_geom"):
         floors.to_mjcf(f, circle_geom="sphere")
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"obstacles": "none"}, "obstacles must be a list"),
+        ({"wall_thickness": -0.2}, "wall_thickness must be in"),
+        ({"size": "11x13"}, "size must be two side lengths"),
+        ({"size": [1e9, 13.0]}, "size must be two side lengths"),
+    ],
+)
+def test_a_floor_file_that_would_load_wrong_is_refused(tmp_path, change, message):
+    spec = json.loads(floors.LAB_ASSET.read_text())
+    path = tmp_path / "floor.json"
+    path.write_text(json.dumps({**spec, **change}))
+    with pytest.raises(floors.FloorSpecError, match=message) as err:
+        floors.lab(path)
+    assert str(err.value).startswith(str(path))
