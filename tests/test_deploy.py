@@ -699,3 +699,23 @@ def test_export_cli(tmp_path, capsys, su_deploy):
     # a training export without a deployment section is refused by the controller, with the fix
     with pytest.raises(deploy.DeployError, match=r"python -m train\.export"):
         deploy.Controller(su_deploy.parent / "policy")
+
+
+def test_replay_refuses_what_it_cannot_replay(su_deploy, tmp_path):
+    controller = deploy.Controller(su_deploy, backend="numpy")
+    copy = tmp_path / "in.mcap"
+    copy.write_bytes(SAMPLE_BAG.read_bytes())
+    with pytest.raises(deploy.DeployError, match="is the input bag"):
+        deploy.replay(controller, copy, copy)
+    assert copy.read_bytes() == SAMPLE_BAG.read_bytes()  # the recording is untouched
+    for name, data in (("magic.mcap", b"\x89MCAP0\r\n"), ("cut.mcap", SAMPLE_BAG.read_bytes()[:9])):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(deploy.DeployError, match="unreadable MCAP file"):
+            deploy.replay(controller, tmp_path / name, tmp_path / "out.mcap")
+    # one /odom message stamped a day late: refused at once instead of 4.3M ticks
+    series = mcap_replay.read_inputs(SAMPLE_BAG, controller.num_rays, controller.num_users)
+    odom = series["/odom"]
+    odom.stamps = odom.stamps.copy()
+    odom.stamps[-1] += 86_400 * 10**9
+    with pytest.raises(deploy.DeployError, match=r"/odom jumps 8\.64e\+04 s between two messages"):
+        mcap_replay.check_stamps(series, "bag")

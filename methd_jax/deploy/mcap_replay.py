@@ -124,7 +124,7 @@ def read_inputs(bag: str | Path, num_rays: int, num_users: int, topics: Topics =
                     s.values.append(user_state(msg))
     except FileNotFoundError:
         raise DeployError(f"{bag}: no such file") from None
-    except (McapError, struct.error, EOFError) as e:
+    except (McapError, struct.error, EOFError, OSError, UnicodeDecodeError) as e:
         raise DeployError(f"{bag}: unreadable MCAP file ({type(e).__name__}: {e})") from None
     except AttributeError as e:
         raise DeployError(f"{bag}: a message has an unexpected layout ({e})") from None
@@ -132,7 +132,26 @@ def read_inputs(bag: str | Path, num_rays: int, num_users: int, topics: Topics =
         if not s.stamps:
             raise DeployError(f"{bag}: no messages on {name} (topics needed: {', '.join(wanted)})")
         s.finish()
+    check_stamps(series, bag)
     return series
+
+
+MAX_GAP = 60.0
+"""Longest silence of a topic that a replay steps through, s: beyond it a stamp is taken for a
+fault (a clock jump), not a pause, and the bag is refused rather than replayed tick by tick."""
+
+
+def check_stamps(series: dict, bag) -> None:
+    """Refuses stamps that would make a replay run for ever: a topic silent for more than
+    :data:`MAX_GAP` (one message stamped a day late gave 4.3M ticks)."""
+    for name, s in series.items():
+        gaps = np.diff(s.stamps) / 1e9
+        if gaps.size and gaps.max() > MAX_GAP:
+            i = int(np.argmax(gaps)) + 1
+            raise DeployError(
+                f"{bag}: {name} jumps {gaps.max():.3g} s between two messages (stamp {int(s.stamps[i])} ns); "
+                f"more than {MAX_GAP:g} s is a clock fault, not a recording"
+            )
 
 
 def replay(
@@ -146,6 +165,8 @@ def replay(
     """Runs ``controller`` over ``bag`` at its control rate and writes the commands to ``out``."""
     from mcap_ros2.writer import Writer
 
+    if Path(out).resolve() == Path(bag).resolve():
+        raise DeployError(f"--out {out} is the input bag; choose another file")
     series = read_inputs(bag, controller.num_rays, controller.num_users, topics)
     user_topics = [topics.user.format(i=i) for i in range(controller.num_users)]
     start = max(int(s.stamps[0]) for s in series.values())
