@@ -243,7 +243,8 @@ class NavEnv(Env):
         self.robot = robot_lib.Robot(config.robot)
         self._lab = floors.lab() if config.lab else None
         # the lab twin padded to the procedural floors' capacity, so either fits one World
-        self._lab_mixed = floors.lab().pad(*config.floor.capacity) if config.lab_fraction > 0 else None
+        mixed = config.lab_fraction > 0 and not config.lab
+        self._lab_mixed = floors.lab().pad(*config.floor.capacity) if mixed else None
         self._boundary, self._inflation_scale = KAIROS.ray_geometry(config.num_rays)
         self._scale = jnp.array([config.robot.max_speed, config.robot.max_speed, config.robot.max_yaw_rate])
         self._cooldown_steps = round(config.cooldown * CONTROL_HZ)

@@ -9,6 +9,7 @@ every episode's numbers) and the figures 5.3-5.6 as PNG into the output folder.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -16,6 +17,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from envs.nav import NavConfig, NavEnv, load_bank
@@ -84,10 +86,6 @@ def procedural(
     the time limit). ``floor``: the floor distribution (default: the policy's own training floors);
     the floors come from ``seed``'s keys, which training never draws (it splits its own seed's key).
     Returns the share of episodes that ended in each way and their count."""
-    import dataclasses
-
-    import jax.numpy as jnp
-
     try:
         policy = export.load(run)
     except (FileNotFoundError, ValueError) as err:

@@ -75,7 +75,8 @@ class RunConfig:
     """Iterations between checkpoints (one is always written at the end)."""
     init_from: str = ""
     """A run folder whose newest checkpoint starts this run: parameters, optimiser, observation and
-    value statistics (same network and observation size; environment and rewards may differ)."""
+    value statistics (same network, observation size and num_envs, since the whole checkpoint is
+    read; floors, rewards and PPO settings may differ)."""
 
     def __post_init__(self):
         if self.env_name not in envs.PRESETS:
@@ -111,48 +112,45 @@ _CPU_RAYS = 90
 # drawn afresh; the capacity (8, 12, 4) holds the lab twin too, so both batch together.
 _CLUTTERED_FLOOR = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 8), num_polygons=(0, 8))
 
+_QUICK = RunConfig(
+    env_name="su",
+    env=dataclasses.replace(
+        envs.PRESETS["su"],
+        floor=_OPEN_FLOOR,
+        motion="sample",
+        num_rays=_CPU_RAYS,
+        weights=dataclasses.replace(envs.rewards.SU_WEIGHTS, velocity=-0.2),
+    ),
+    num_envs=256,
+    timesteps=16_000,
+    ppo=PPOConfig(rollouts=32, minibatches=4),
+    hidden=(128, 128, 128),
+    checkpoint_every=100,
+)
+
 PRESETS: dict[str, tuple[str, RunConfig]] = {
     "quick": (
         "SU on walled floors without obstacles, 90 rays, a 3 x 128 body, a tenth of the velocity "
         "penalty: ~7 min on a 2-core CPU, the robot learns to reach and hold the HIP (default)",
-        RunConfig(
-            env_name="su",
-            env=dataclasses.replace(
-                envs.PRESETS["su"],
-                floor=_OPEN_FLOOR,
-                motion="sample",
-                num_rays=90,
-                weights=dataclasses.replace(envs.rewards.SU_WEIGHTS, velocity=-0.2),
-            ),
-            num_envs=256,
-            timesteps=16_000,
-            ppo=PPOConfig(rollouts=32, minibatches=4),
-            hidden=(128, 128, 128),
-            checkpoint_every=100,
-        ),
+        _QUICK,
     ),
     "su_cpu": (
         "SU for the 2-core CPU: procedural floors with obstacles and the lab twin (30%), the 342 "
         "training trajectories, 90 rays, a 3 x 256 body; 43M transitions, ~1.5 h (work in progress: "
         "docs/results.md)",
-        RunConfig(
-            env_name="su",
+        dataclasses.replace(
+            _QUICK,
             env=dataclasses.replace(
-                envs.PRESETS["su"],
+                _QUICK.env,
                 floor=_CLUTTERED_FLOOR,
                 lab_fraction=0.3,
                 motion="default",
-                num_rays=_CPU_RAYS,
+                # p_i sums over rays: scaled so that 90 rays weigh what the thesis's 720 did
                 weights=dataclasses.replace(
-                    envs.rewards.SU_WEIGHTS,
-                    velocity=-0.2,
-                    # p_i sums over rays: scaled so that 90 rays weigh what the thesis's 720 did
-                    inflation=envs.rewards.SU_WEIGHTS.inflation * 720 / _CPU_RAYS,
+                    _QUICK.env.weights, inflation=envs.rewards.SU_WEIGHTS.inflation * 720 / _CPU_RAYS
                 ),
             ),
-            num_envs=256,
             timesteps=168_000,
-            ppo=PPOConfig(rollouts=32, minibatches=4),
             hidden=(256, 256, 256),
             checkpoint_every=200,
         ),
