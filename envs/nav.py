@@ -115,6 +115,10 @@ class NavConfig:
     goal_rate: float = 0.02
     """Scripted goal source: largest change of u_w per step."""
     # -- beyond the thesis (all off by default) -------------------------------------------------
+    goal_clearance: float = 0.0
+    """Above 0: the goal is the HIP pushed out of obstacles until a disc of this radius around it
+    is free and every user is beyond d_crit (:func:`methd_jax.floors.push_clear`), so a HIP inside
+    furniture or a wall does not pull the robot into it (the thesis's goal is the raw HIP: 0), m."""
     users_visible: bool = False
     """Users appear to the LiDAR as leg-height cylinders (the thesis's LiDAR could not see them)."""
     user_radius: float = 0.25
@@ -146,7 +150,14 @@ class NavConfig:
                     raise ValueError(f"{f.name} must be finite numbers, got {value!r}")
         if not 0.0 <= self.lidar_dropout <= 1.0:
             raise ValueError(f"lidar_dropout must be in [0, 1], got {self.lidar_dropout}")
-        for name in ("lidar_noise", "spawn_margin", "goal_tolerance", "goal_deadzone", "goal_yaw_deadzone"):
+        for name in (
+            "lidar_noise",
+            "spawn_margin",
+            "goal_tolerance",
+            "goal_deadzone",
+            "goal_yaw_deadzone",
+            "goal_clearance",
+        ):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("mass_scale", "force_scale", "goal_switch_time"):
@@ -405,7 +416,7 @@ class NavEnv(Env):
         hips = users["hip"]  # (N, 3)
         requested = w.t >= w.request_step
         if cfg.num_users == 1:
-            return w.replace(goal=hips[0])
+            return w.replace(goal=self._reachable(w.floor, hips[0], users))
         u_w, target, guide_actions = w.u_w, w.goal_target, w.guide_actions
         if cfg.num_users == 2:
             if self.guide_policy is not None:
@@ -428,7 +439,22 @@ class NavEnv(Env):
             )
             goal = hips[target.astype(jnp.int32)]
         goal = jnp.where(requested, hips[w.requester], goal)
+        goal = self._reachable(w.floor, goal, users)
         return w.replace(goal=goal, u_w=u_w, goal_target=target, guide_actions=guide_actions)
+
+    def _reachable(self, floor: Floor, goal: jax.Array, users: dict) -> jax.Array:
+        """``goal`` moved to the nearest clear point when ``goal_clearance`` is set (yaw kept)."""
+        cfg = self.config
+        if cfg.goal_clearance <= 0:
+            return goal
+        xy = floors.push_clear(
+            floor,
+            goal[:2],
+            cfg.goal_clearance,
+            avoid=users["pose"][:, :2],
+            avoid_radius=cfg.safety.critical_distance,
+        )
+        return goal.at[:2].set(xy)
 
     def observe(self, w: World, action: jax.Array, key: jax.Array, users: dict | None = None):
         """The observation, the unweighted reward terms and the step's diagnostics.

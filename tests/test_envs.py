@@ -379,6 +379,35 @@ def test_lab_floor_option(bank):
     assert float(jax.vmap(floors.signed_distance, (None, 0))(lab, pose[:, :2]).min()) >= 0.82 - 1e-4
 
 
+def test_goal_clearance_keeps_the_goal_off_obstacles_and_users(bank):
+    # floors large enough to hold the sample users' paths, with furniture on them
+    room = FloorConfig(room_size=(20.0, 20.0), num_circles=(4, 8), num_polygons=(4, 8))
+    raw = envs.make("su", bank=bank, floor=room)
+    clear = envs.make("su", bank=bank, floor=room, goal_clearance=0.9)
+
+    @jax.jit
+    def goals(key):
+        w = jax.vmap(raw.reset)(jax.random.split(key, 64)).pipeline_state
+        out = []
+        for t in (0, 150, 300, 450, 600):
+            wt = w.replace(t=jnp.full_like(w.t, t))
+            users = jax.vmap(raw._user_features)(wt)
+            hip = jax.vmap(lambda w, u: raw.update_goal(w, u, key, False).goal)(wt, users)
+            goal = jax.vmap(lambda w, u: clear.update_goal(w, u, key, False).goal)(wt, users)
+            room = jax.vmap(floors.clearance)
+            out.append((hip, goal, users["pose"][:, 0, :2], room(w.floor, hip[:, :2]), room(w.floor, goal[:, :2])))
+        return jax.tree.map(lambda *x: jnp.concatenate(x), *out)
+
+    hip, goal, user, before, after = (np.asarray(x) for x in goals(jax.random.key(0)))
+    blocked = before < 0.9
+    assert blocked.sum() > 20 and (~blocked).sum() > 20  # both kinds of HIP occur
+    np.testing.assert_array_equal(goal[~blocked], hip[~blocked])  # clear HIPs are the goal
+    np.testing.assert_array_equal(goal[:, 2], hip[:, 2])  # the yaw is the HIP's
+    assert np.mean(after[blocked] >= 0.9 - 1e-3) > 0.7
+    assert np.mean(after[blocked] >= 0.77) > 0.85  # the footprint fits at nearly all
+    assert np.all(np.linalg.norm(goal[:, :2] - user, axis=1) >= 1.77 - 1e-3)
+
+
 def test_no_key_is_used_twice_between_reset_and_step(bank):
     # A standing robot sees the same true ranges at reset and after one zero-action step, so equal
     # noisy readings would mean the two observations drew their noise from the same key. (Rays past

@@ -202,6 +202,48 @@ def test_free_space_query_agrees_with_the_ray_caster():
     assert not free[~outside].any() and np.all(nearest[~outside] == 0)
 
 
+def test_push_clear_finds_the_nearest_clear_point_next_to_one_obstacle():
+    f = Floor.from_primitives(circles=[(0.0, 0.0, 1.0)], polygons=[[(4, -1), (6, -1), (6, 1), (4, 1)]],
+                              bounds=(-10, -10, 10, 10))
+    # brute force: the nearest point of a fine grid whose 0.9 m disc is clear
+    g = np.stack(np.meshgrid(np.linspace(-4, 9, 521), np.linspace(-4, 4, 321)), -1).reshape(-1, 2)
+    free = np.asarray(jax.vmap(lambda p: floors.is_free(f, p, 0.9))(jnp.asarray(g)))
+    starts = [(0.3, 0.2), (-0.5, -0.1), (1.2, 0.0), (4.5, 0.3), (5.9, -0.8), (3.5, 0.5), (7.0, 1.5)]
+    for x in starts:
+        got = np.asarray(floors.push_clear(f, jnp.asarray(x), 0.9))
+        nearest = g[free][np.argmin(np.linalg.norm(g[free] - x, axis=1))]
+        assert np.linalg.norm(got - x) == pytest.approx(np.linalg.norm(nearest - x), abs=0.03), x
+        assert float(floors.clearance(f, jnp.asarray(got))) >= 0.9 - 1e-4
+    # a clear point stays put, and a point pushed away from a user keeps its distance
+    assert np.asarray(floors.push_clear(f, jnp.array([-3.0, 3.0]), 0.9)).tolist() == [-3.0, 3.0]
+    got = floors.push_clear(f, jnp.array([-3.0, 3.0]), 0.9, avoid=jnp.array([[-3.5, 3.0]]), avoid_radius=1.77)
+    assert float(jnp.linalg.norm(got - jnp.array([-3.5, 3.0]))) == pytest.approx(1.77, abs=1e-4)
+    # the edge of the bounds counts as an obstacle
+    assert float(floors.push_clear(f, jnp.array([9.8, -5.0]), 0.9)[0]) == pytest.approx(9.1, abs=1e-4)
+    # a point exactly on a wall's face that is also the bound (where the distance has no
+    # derivative: autodiff gave NaN there) still moves into the room
+    wall = Floor.from_primitives(polygons=[[(5.5, -7), (6, -7), (6, 7), (5.5, 7)]], bounds=(-5.5, -6.5, 5.5, 6.5))
+    got = np.asarray(floors.push_clear(wall, jnp.array([5.5, 0.0]), 0.9))
+    np.testing.assert_allclose(got, [4.6, 0.0], atol=1e-3)
+
+
+def test_push_clear_frees_most_blocked_points_on_cluttered_floors():
+    # the environments' floors (13 x 16 m, up to 8 + 8 obstacles): about half the area is too
+    # tight for a 0.9 m disc, and gaps narrower than the disc cannot free every point
+    cfg = FloorConfig(room_size=(13.0, 16.0))
+    batch = floors.generate_batch(jax.random.key(11), 32, cfg)
+    pts = jax.random.uniform(jax.random.key(12), (32, 40, 2), minval=-6.0, maxval=6.0)
+    clear = jax.vmap(jax.vmap(floors.clearance, (None, 0)), (0, 0))
+    pushed = jax.vmap(jax.vmap(lambda f, p: floors.push_clear(f, p, 0.9), (None, 0)), (0, 0))(batch, pts)
+    before, after = np.asarray(clear(batch, pts)), np.asarray(clear(batch, pushed))
+    blocked = before < 0.9
+    assert blocked.sum() > 400
+    assert np.all(after[~blocked] == before[~blocked])  # clear points do not move
+    assert np.mean(after[blocked] >= 0.9 - 1e-3) > 0.8  # most blocked ones end clear
+    assert np.mean(after[blocked] >= 0.77) > 0.9  # and the footprint fits at nearly all
+    assert np.mean(after[blocked] >= np.minimum(before[blocked], 0.9) - 1e-3) > 0.97
+
+
 def test_mjcf_export_uses_the_right_geoms():
     batch = floors.generate_batch(jax.random.key(7), 8, FloorConfig(triangle_fraction=0.5))
     f = jax.tree.map(lambda x: x[0], batch)
