@@ -300,6 +300,93 @@ def test_controller_counts_safety_interventions(su_deploy):
     assert sum(c.interventions.values()) == sum(o.reason is not None for o in outs)
 
 
+@pytest.fixture(scope="module")
+def coarse_deploy(tmp_path_factory):
+    """A policy that samples 90 rays (4 degrees apart), as the CPU presets train."""
+    env = NavEnv(NavConfig(motion="sample", split="all", num_rays=90))
+    root = tmp_path_factory.mktemp("coarse")
+    net = networks.ActorCritic(num_rays=90, hidden=(32, 32))
+    export_random_policy(root, env, "su", net, seed=5)
+    return export.export_deployment(root, log=lambda *a: None)
+
+
+def _pole_scan(pose, pole, radius, beams=1440):
+    """A LaserScan (angle_min -pi, ``beams`` beams, 0.05-30 m) of one pole seen from ``pose``."""
+    ang = -np.pi + 2 * np.pi * np.arange(beams) / beams
+    d = np.stack([np.cos(ang + pose[2]), np.sin(ang + pose[2])], 1)
+    rel = np.asarray(pole) - pose[:2]
+    along = d @ rel
+    disc = along**2 - (rel @ rel - radius**2)
+    hit = (disc >= 0) & (along > 0)
+    ranges = np.where(hit, along - np.sqrt(np.maximum(disc, 0.0)), np.inf)
+    return ranges, (-np.pi, 2 * np.pi / beams, 0.05, 30.0)
+
+
+def _pole_depth(pose, pole, radius) -> float:
+    """How far the pole reaches into the footprint (<= 0: clear)."""
+    q = observation.to_local(pose, np.asarray(pole)[None])[0]
+    half = np.array([KAIROS.length / 2, KAIROS.width / 2])
+    outside = np.maximum(np.abs(q) - half, 0.0)
+    return radius - float(np.linalg.norm(outside)) if outside.any() else radius + float(np.min(half - np.abs(q)))
+
+
+def _drive_at_pole(controller, pole, radius, full_scan, ticks=100):
+    """Forces full-speed actions straight at the pole for ``ticks`` ticks, moving the base exactly
+    as commanded; the deepest penetration and the closest the pole came."""
+    pose = np.zeros(3)
+    deepest = -np.inf
+    controller.reset()
+    for _ in range(ticks):
+        ranges, geometry = _pole_scan(pose, pole, radius)
+        rel = observation.to_local(pose, np.asarray(pole)[None])[0]
+        controller.policy = lambda obs, rel=rel: np.r_[rel / np.abs(rel).max(), 0.0].astype(np.float32)
+        x = deploy.Inputs(
+            ranges=deploy.scan_to_rays(ranges, *geometry, controller.num_rays),
+            scan_points=deploy.scan_points(ranges, *geometry) if full_scan else None,
+            robot_pose=pose.copy(),
+            velocity=np.zeros(3),
+            users=np.array([[-20.0, 0.0, 0.0, 0.0, 0.0, 0.0]]),
+            goal=np.r_[pole, 0.0],
+        )
+        twist = controller.tick(x).twist
+        step = arc(twist, np.linspace(0, controller.dt, 11)[1:])  # the move, finely sampled
+        for local in step:
+            moved = np.r_[pose[:2] + observation.rotate(pose[2], local[:2]), pose[2] + local[2]]
+            deepest = max(deepest, _pole_depth(moved, pole, radius))
+        pose = moved
+    return deepest, pose
+
+
+def test_safety_stops_before_a_thin_pole_between_the_policys_rays(coarse_deploy):
+    # 2 cm poles at 0.3-1.5 m beyond the bumper, each halfway between two of the policy's 90 rays
+    # (which therefore miss it), with the policy forced to full speed straight at it
+    c = deploy.Controller(coarse_deploy, backend="numpy")
+    rng = np.random.default_rng(7)
+    missed_by_rays, hits_without_full_scan = 0, 0
+    for _ in range(12):
+        bearing = np.deg2rad(4.0 * rng.integers(-5, 6) + 2.0)  # between two policy rays
+        gap = rng.uniform(0.3, 1.5)
+        boundary = float(KAIROS.boundary_distance(jnp.asarray(bearing)))
+        pole = (boundary + gap + 0.01) * np.array([np.cos(bearing), np.sin(bearing)])
+        ranges, geometry = _pole_scan(np.zeros(3), pole, 0.01)
+        missed_by_rays += np.isinf(deploy.scan_to_rays(ranges, *geometry, 90)).all()
+        deepest, pose = _drive_at_pole(c, pole, 0.01, full_scan=True)
+        assert deepest <= 0.0, (bearing, gap, deepest)
+        # it approached (slowing as the sweep's clear time shrinks), not stopped at the first sight
+        assert _pole_depth(pose, pole, 0.01) > -(0.05 + 0.5 * gap)
+        hits_without_full_scan += _drive_at_pole(c, pole, 0.01, full_scan=False)[0] > 0.0
+    assert missed_by_rays == 12  # the policy's rays never saw a pole ...
+    assert hits_without_full_scan >= 10  # ... so without the full scan the robot drives into it
+    assert c.interventions["safety:obstacle"] > 0
+
+
+def test_scan_points_are_the_beams_in_range():
+    ranges = np.array([1.0, np.inf, 0.01, 2.0, np.nan, 50.0])
+    pts = deploy.scan_points(ranges, 0.0, np.pi / 2, 0.05, 30.0)
+    np.testing.assert_allclose(pts, [[1.0, 0.0], [0.0, -2.0]], atol=1e-12)  # beams 0 and 3 (270 deg)
+    assert deploy.scan_points(np.array([]), 0.0, 0.1, 0.0, 1.0).shape == (0, 2)
+
+
 # -- the watchdog -------------------------------------------------------------------------------
 
 
@@ -336,6 +423,9 @@ def _good(n_users: int = 1) -> deploy.Inputs:
         ({"scan_stamp": 110.0}, 10.0, "watchdog:stale_scan"),  # from the future
         ({"odom_stamp": float("inf")}, 10.0, "watchdog:stale_odom"),
         ({"users_stamp": 15.0}, 10.0, "watchdog:stale_users"),  # a clock that jumped back 5 s
+        ({"scan_points": np.zeros((4, 3))}, 10.0, "watchdog:shape_scan_points"),
+        ({"scan_points": np.array([[1.0, np.nan]])}, 10.0, "watchdog:nan_scan_points"),
+        ({"scan_points": [[1.0, "x"]]}, 10.0, "watchdog:invalid_scan_points"),
     ],
 )
 def test_watchdog_stops_on_bad_inputs(su_deploy, change, now, reason):
@@ -490,9 +580,12 @@ def test_replay_the_sample_bag(su_deploy, tmp_path):
     twist = np.array([cmds[0][2].linear.x, cmds[0][2].linear.y, cmds[0][2].angular.z])
     c2 = deploy.Controller(su_deploy)
     odom = first["/odom"].values[0]
+    rays, points = first["/scan"].values[0]
+    assert len(points) == np.isfinite(rays).sum()  # the sample's LiDAR has the policy's 720 beams
     expected = c2.tick(
         deploy.Inputs(
-            ranges=first["/scan"].values[0],
+            ranges=rays,
+            scan_points=points,
             robot_pose=odom[0],
             velocity=odom[1],
             users=first["/user0/odom"].values[0][None],

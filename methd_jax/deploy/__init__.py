@@ -7,7 +7,7 @@ ROS 2 bag in MCAP; ``ros_node`` wraps it in rclpy. CLI: ``python -m methd_jax.de
 """
 
 from methd_jax.deploy.controller import Command, Controller, Inputs, WatchdogConfig, latency
-from methd_jax.deploy.mcap_replay import Topics, replay, scan_to_rays
+from methd_jax.deploy.mcap_replay import Topics, replay, scan_points, scan_to_rays
 from methd_jax.deploy.policy import DeployError, NumpyPolicy, OnnxPolicy, load_manifest, load_policy
 from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
 
@@ -26,5 +26,6 @@ __all__ = [
     "load_manifest",
     "load_policy",
     "replay",
+    "scan_points",
     "scan_to_rays",
 ]

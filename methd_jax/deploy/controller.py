@@ -29,7 +29,9 @@ class Inputs:
     ``ranges`` (num_rays,) LiDAR ranges in the robot frame, ray i at 2*pi*i/num_rays counter-clockwise
     from +x (inf or above range: no return); ``robot_pose`` (x, y, yaw); ``velocity`` (vx, vy, wz) in
     the robot frame; ``acceleration`` likewise, or None to difference successive velocities;
-    ``users`` (N, 6) x, y, yaw, vx, vy, wz; ``goal`` (x, y, yaw).
+    ``users`` (N, 6) x, y, yaw, vx, vy, wz; ``goal`` (x, y, yaw); ``scan_points`` (M, 2) the
+    LiDAR's returns at its own full resolution in the robot frame (None: the safety layer checks
+    the policy's rays only, and a pole between two of them goes unseen).
     """
 
     ranges: np.ndarray | None
@@ -38,6 +40,7 @@ class Inputs:
     users: np.ndarray | None
     goal: np.ndarray | None
     acceleration: np.ndarray | None = None
+    scan_points: np.ndarray | None = None
     scan_stamp: float | None = None
     odom_stamp: float | None = None
     users_stamp: float | None = None
@@ -133,6 +136,15 @@ class Controller:
                     return "zero_ranges"
             elif not np.isfinite(value).all():
                 return f"nan_{name}"
+        if x.scan_points is not None:
+            try:
+                points = np.asarray(x.scan_points, np.float64)
+            except (TypeError, ValueError):
+                return "invalid_scan_points"
+            if points.ndim != 2 or points.shape[1] != 2:
+                return "shape_scan_points"
+            if not np.isfinite(points).all():
+                return "nan_scan_points"
         if now is not None:
             for name in ("scan", "odom", "users"):
                 stamp = getattr(x, f"{name}_stamp")
@@ -176,7 +188,8 @@ class Controller:
             users = np.asarray(x.users, np.float64)
             local = observation.to_local(pose, users[:, :2])
             local_vel = observation.rotate(-pose[2], users[:, 3:5])
-            safe, reason = self.monitor(cmd, np.asarray(x.ranges, np.float64), local, local_vel)
+            scan = None if x.scan_points is None else np.asarray(x.scan_points, np.float64)
+            safe, reason = self.monitor(cmd, np.asarray(x.ranges, np.float64), local, local_vel, scan)
             safe = clamp_to_limits(safe)
             if reason is not None:
                 self.interventions[f"safety:{reason}"] += 1

@@ -55,6 +55,20 @@ def scan_to_rays(
     return np.where(covered | wrap, r[np.clip(index, 0, r.size - 1)], np.inf)
 
 
+def scan_points(
+    ranges, angle_min: float, angle_increment: float, range_min: float, range_max: float
+) -> np.ndarray:
+    """A LaserScan's returns at full resolution as points (M, 2) in the sensor frame: every beam
+    with a reading in [range_min, range_max] (what the safety layer checks; the policy sees only
+    :func:`scan_to_rays`)."""
+    r = np.asarray(ranges, np.float64)
+    if r.size == 0 or not angle_increment > 0:
+        return np.zeros((0, 2))
+    a = angle_min + angle_increment * np.arange(r.size)
+    ok = np.isfinite(r) & (r >= range_min) & (r <= range_max)
+    return np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], -1)
+
+
 def odometry(msg) -> tuple[np.ndarray, np.ndarray]:
     p, t = msg.pose.pose, msg.twist.twist
     pose = np.array([p.position.x, p.position.y, ros_messages.quaternion_yaw(p.orientation)])
@@ -106,15 +120,9 @@ def read_inputs(bag: str | Path, num_rays: int, num_users: int, topics: Topics =
                 s = series[channel.topic]
                 s.stamps.append(ros_messages.stamp_ns(msg))
                 if channel.topic == topics.scan:
+                    geometry = (msg.angle_min, msg.angle_increment, msg.range_min, msg.range_max)
                     s.values.append(
-                        scan_to_rays(
-                            msg.ranges,
-                            msg.angle_min,
-                            msg.angle_increment,
-                            msg.range_min,
-                            msg.range_max,
-                            num_rays,
-                        )
+                        (scan_to_rays(msg.ranges, *geometry, num_rays), scan_points(msg.ranges, *geometry))
                     )
                 elif channel.topic == topics.goal:
                     s.values.append(goal_pose(msg))
@@ -182,12 +190,13 @@ def replay(
         writer = Writer(f)
         schema = writer.register_msgdef("geometry_msgs/msg/Twist", ros_messages.TWIST)
         for k, t in enumerate(ticks.tolist()):
-            scan_t, ranges = series[topics.scan].at(t)
+            scan_t, scan = series[topics.scan].at(t)
             odom_t, odom = series[topics.odom].at(t)
             _, goal = series[topics.goal].at(t)
             users = [series[u].at(t) for u in user_topics]
             x = Inputs(
-                ranges=ranges,
+                ranges=None if scan is None else scan[0],
+                scan_points=None if scan is None else scan[1],
                 robot_pose=None if odom is None else odom[0],
                 velocity=None if odom is None else odom[1],
                 users=None if any(u[1] is None for u in users) else np.stack([u[1] for u in users]),

@@ -12,7 +12,7 @@ import numpy as np
 
 from methd_jax import ros_messages
 from methd_jax.deploy.controller import Controller, Inputs
-from methd_jax.deploy.mcap_replay import Topics, goal_pose, odometry, scan_to_rays, user_state
+from methd_jax.deploy.mcap_replay import Topics, goal_pose, odometry, scan_points, scan_to_rays, user_state
 
 
 def _rclpy():
@@ -46,10 +46,9 @@ def run(policy_dir: str, topics: Topics = Topics(), backend: str = "onnx") -> No
         return ros_messages.stamp_ns(msg) / 1e9
 
     def on_scan(msg):
-        ranges = scan_to_rays(
-            msg.ranges, msg.angle_min, msg.angle_increment, msg.range_min, msg.range_max, controller.num_rays
-        )
-        latest["scan"] = (stamp(msg), ranges)
+        geometry = (msg.angle_min, msg.angle_increment, msg.range_min, msg.range_max)
+        scan = (scan_to_rays(msg.ranges, *geometry, controller.num_rays), scan_points(msg.ranges, *geometry))
+        latest["scan"] = (stamp(msg), scan)
 
     def on_odom(msg):
         latest["odom"] = (stamp(msg), odometry(msg))
@@ -74,7 +73,8 @@ def run(policy_dir: str, topics: Topics = Topics(), backend: str = "onnx") -> No
         scan, odom = latest.get("scan"), latest.get("odom")
         users = [latest.get(f"user{i}") for i in range(controller.num_users)]
         x = Inputs(
-            ranges=None if scan is None else scan[1],
+            ranges=None if scan is None else scan[1][0],
+            scan_points=None if scan is None else scan[1][1],
             robot_pose=None if odom is None else odom[1][0],
             velocity=None if odom is None else odom[1][1],
             users=None if any(u is None for u in users) else np.stack([u[1] for u in users]),

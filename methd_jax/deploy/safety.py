@@ -77,11 +77,13 @@ class CollisionMonitor:
         self.fractions = np.linspace(1.0, 0.0, config.user_steps + 1)
 
     def points(self, ranges: np.ndarray, command: np.ndarray) -> np.ndarray:
-        """Scan points (P, 2) the sweep of ``command`` could reach."""
-        speed = np.hypot(command[0], command[1]) + abs(command[2]) * self.reach_radius
-        reach = self.reach_radius + speed * self.config.horizon
-        near = np.isfinite(ranges) & (ranges < reach)
+        """Points (P, 2) of the monitor's own rays (``ranges``) the sweep of ``command`` could reach."""
+        near = np.isfinite(ranges) & (ranges < self._reach(command))
         return ranges[near, None] * self.directions[near]
+
+    def _reach(self, command: np.ndarray) -> float:
+        speed = np.hypot(command[0], command[1]) + abs(command[2]) * self.reach_radius
+        return self.reach_radius + speed * self.config.horizon
 
     @staticmethod
     def _inside(poses: np.ndarray, points: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -125,12 +127,20 @@ class CollisionMonitor:
         bad = np.any((d < self.user_distance) & (d < still[None] - 1e-9), axis=(1, 2))
         return float(scales[np.argmin(bad)]) if not bad.all() else 0.0
 
-    def __call__(self, command, ranges, users, velocities) -> tuple[np.ndarray, str | None]:
-        """(filtered command, what limited it: None, "obstacle" or "user")."""
+    def __call__(self, command, ranges, users, velocities, scan=None) -> tuple[np.ndarray, str | None]:
+        """(filtered command, what limited it: None, "obstacle" or "user").
+
+        ``scan`` (M, 2): the sensor's own returns in the robot frame at its full resolution (see
+        :func:`methd_jax.deploy.mcap_replay.scan_points`); when given, obstacles are checked against
+        it instead of ``ranges``, so a pole thinner than the gap between the policy's rays is seen."""
         command = np.asarray(command, np.float64)
         if not self.config.enabled or not np.any(command):
             return command, None
-        s_obstacle = self.obstacle_scale(command, self.points(ranges, command))
+        if scan is None:
+            points = self.points(ranges, command)
+        else:
+            points = scan[np.linalg.norm(scan, axis=1) < self._reach(command)]
+        s_obstacle = self.obstacle_scale(command, points)
         s = self.user_scale(command, s_obstacle, users, velocities)
         reason = "user" if s < s_obstacle else ("obstacle" if s_obstacle < 1.0 else None)
         return command * s, reason
