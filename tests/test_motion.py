@@ -335,6 +335,19 @@ def test_ros1_bags_convert_to_the_same_data(tmp_path):
     with pytest.raises(MotionDataError, match=r"junk\.bag: not a readable ROS 1 bag"):
         motion.convert(tmp_path / "junk.bag", tmp_path / "out")
     assert not (tmp_path / "out").exists()  # nothing written for a bad input
+    # random bytes named .bag: a one-line error naming the file
+    (tmp_path / "random.bag").write_bytes(np.random.default_rng(0).bytes(2000))
+    with pytest.raises(MotionDataError, match=r"random\.bag: not a readable ROS 1 bag"):
+        motion.convert(tmp_path / "random.bag", tmp_path / "out")
+    # a destination that is a file, or holds the outputs already: refused, nothing overwritten
+    (tmp_path / "a_file").write_text("mine")
+    with pytest.raises(MotionDataError, match=r"a_file: exists and is not a directory"):
+        motion.convert(tmp_path / "ros1", tmp_path / "a_file")
+    before = (tmp_path / "mcap" / "traj_0000.mcap").read_bytes()
+    with pytest.raises(MotionDataError, match=r"traj_0000\.mcap: already exists"):
+        motion.convert(tmp_path / "ros1", tmp_path / "mcap")
+    assert (tmp_path / "mcap" / "traj_0000.mcap").read_bytes() == before
+    assert (tmp_path / "a_file").read_text() == "mine"
 
 
 def _cli(*args):

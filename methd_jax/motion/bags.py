@@ -297,6 +297,9 @@ def read_ros1_bag(path: str | Path) -> Trajectory:
         raise MotionDataError(f"{path}: no such file") from None
     except ReaderError as e:
         raise MotionDataError(f"{path}: not a readable ROS 1 bag ({e})") from None
+    except (struct.error, EOFError, OSError, UnicodeDecodeError, ValueError, KeyError, IndexError) as e:
+        # rosbags reads a random or damaged file's header fields as whatever they decode to
+        raise MotionDataError(f"{path}: not a readable ROS 1 bag ({type(e).__name__}: {e})") from None
     return _assemble(path.stem, topics, str(path))
 
 
@@ -348,6 +351,15 @@ def write_ros1_bag(path: str | Path, traj: Trajectory) -> Path:
 def convert(src: str | Path, dst: str | Path, progress=None) -> list[Path]:
     """Converts a ROS 1 ``.bag`` (or a directory of them) to our MCAP layout under ``dst``.
 
-    Every input is read and checked before anything is written.
+    Every input is read and checked before anything is written, and nothing that exists is
+    overwritten: ``dst`` is a new ``.mcap`` file (one input) or a directory.
     """
-    return save(dst, _read_all(src, ".bag", read_ros1_bag, progress))
+    dst = Path(dst)
+    if dst.suffix != ".mcap" and dst.exists() and not dst.is_dir():
+        raise MotionDataError(f"{dst}: exists and is not a directory; give a directory or a new .mcap file")
+    trajectories = _read_all(src, ".bag", read_ros1_bag, progress)
+    targets = [dst] if dst.suffix == ".mcap" else [dst / f"{t.name}.mcap" for t in trajectories]
+    taken = [str(t) for t in targets if t.exists()]
+    if taken:
+        raise MotionDataError(f"{taken[0]}: already exists; convert does not overwrite ({len(taken)} file(s))")
+    return save(dst, trajectories)
