@@ -4,6 +4,7 @@ commands as in training, the safety layer, the watchdog, MCAP replay, and the CL
 import dataclasses
 import json
 import math
+import re
 import subprocess
 import sys
 import types
@@ -784,7 +785,7 @@ def test_export_cli(tmp_path, capsys, su_deploy):
     with pytest.raises(SystemExit) as e:
         export.main([str(tmp_path / "nothing")])
     err = capsys.readouterr().err
-    assert e.value.code == 1 and "no such run or policy folder" in err and err.strip().count("\n") == 0
+    assert e.value.code == 2 and "no such run or policy folder" in err and err.strip().count("\n") == 0
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit):
         export.main([str(tmp_path / "empty")])
@@ -792,6 +793,37 @@ def test_export_cli(tmp_path, capsys, su_deploy):
     # a training export without a deployment section is refused by the controller, with the fix
     with pytest.raises(deploy.DeployError, match=r"python -m train\.export"):
         deploy.Controller(su_deploy.parent / "policy")
+
+
+def test_export_refuses_damaged_runs_and_leaves_no_half_folder(coarse_deploy, tmp_path, capsys):
+    import shutil
+
+    def run_copy(name):
+        shutil.copytree(coarse_deploy.parent, tmp_path / name, ignore=shutil.ignore_patterns("deploy"))
+        (tmp_path / name / "config.json").write_text("{}")
+        return tmp_path / name
+
+    cut = run_copy("cut")
+    params = cut / "policy" / "params.npz"
+    params.write_bytes(params.read_bytes()[:3000])
+    bad_config = run_copy("config")
+    (bad_config / "config.json").write_text("{bad")
+    for run, message in ((cut, r"params\.npz: unreadable"), (bad_config, r"config\.json: unreadable")):
+        with pytest.raises(SystemExit) as e:
+            export.main([str(run)])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and re.search(message, err) and err.strip().count("\n") == 0, err
+        assert sorted(p.name for p in run.iterdir()) == ["config.json", "policy"]  # nothing left behind
+    # a folder of the user's is not overwritten; an earlier export is replaced whole
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    with pytest.raises(export.ExportError, match="not an earlier deployment folder"):
+        export.export_deployment(coarse_deploy.parent, mine, log=lambda *a: None)
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+    (coarse_deploy / "params.npz").write_bytes(b"stale")
+    again = export.export_deployment(coarse_deploy.parent, log=lambda *a: None)
+    assert again == coarse_deploy and deploy.Controller(again, backend="numpy").num_rays == 90
 
 
 def test_replay_refuses_what_it_cannot_replay(su_deploy, tmp_path):

@@ -25,6 +25,8 @@ import math
 import shutil
 import subprocess
 import sys
+import tempfile
+import zipfile
 from pathlib import Path
 
 import jax
@@ -135,12 +137,19 @@ def load(path: str | Path) -> Policy:
         path = path / "policy"
     if not (path / "manifest.json").exists():
         raise FileNotFoundError(f"{path} holds no exported policy (manifest.json is missing)")
-    manifest = json.loads((path / "manifest.json").read_text())
-    if manifest.get("format") != FORMAT:
-        raise ValueError(f"{path}: unknown policy format {manifest.get('format')!r}, expected {FORMAT!r}")
-    with np.load(path / "params.npz") as data:
-        arrays = {k: data[k] for k in data.files}
-    mean, std = arrays.pop("obs_mean"), arrays.pop("obs_std")
+    try:
+        manifest = json.loads((path / "manifest.json").read_text())
+    except (ValueError, OSError) as e:
+        raise ValueError(f"{path / 'manifest.json'}: unreadable ({type(e).__name__}: {e})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        got = manifest.get("format") if isinstance(manifest, dict) else manifest
+        raise ValueError(f"{path}: unknown policy format {got!r}, expected {FORMAT!r}")
+    try:
+        with np.load(path / "params.npz") as data:
+            arrays = {k: data[k] for k in data.files}
+        mean, std = arrays.pop("obs_mean"), arrays.pop("obs_std")
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{path / 'params.npz'}: unreadable ({type(e).__name__}: {e})") from None
     params = traverse_util.unflatten_dict({tuple(k.split("/")): jnp.asarray(v) for k, v in arrays.items()})
     return Policy(manifest, params, jnp.asarray(mean), jnp.asarray(std))
 
@@ -302,27 +311,47 @@ def export_deployment(source: str | Path, out: str | Path | None = None, *, log=
     out = Path(out) if out is not None else (run_dir or policy_dir) / "deploy"
     if out.resolve() == policy_dir.resolve():
         raise ExportError(f"--out {out} is the policy folder itself; choose another folder")
-    out.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(policy_dir / "params.npz", out / "params.npz")
-    log(f"exporting {policy.manifest['env']} policy from {policy_dir} to ONNX ...")
-    to_onnx(policy_dir, out / "policy.onnx")
-    manifest = dict(policy.manifest)
+    if out.exists() and not _replaceable(out):
+        raise ExportError(
+            f"--out {out} exists and is not an earlier deployment folder; choose a new or empty folder"
+        )
     run_config = None
     if run_dir is not None and (run_dir / "config.json").exists():
-        run_config = json.loads((run_dir / "config.json").read_text())
-    manifest.update(
-        deployment=deployment_section(policy.manifest),
-        onnx={"file": "policy.onnx", "input": "observation", "output": "action", "batch": "dynamic"},
-        run_config=run_config,
-        versions=versions(),
-        params_sha256=params_sha256(out / "params.npz"),
-    )
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+        try:
+            run_config = json.loads((run_dir / "config.json").read_text())
+        except (ValueError, OSError) as e:
+            raise ExportError(f"{run_dir / 'config.json'}: unreadable ({type(e).__name__}: {e})") from None
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # built beside ``out`` and moved into place whole: a failed export leaves no half folder
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
+    try:
+        shutil.copyfile(policy_dir / "params.npz", tmp / "params.npz")
+        log(f"exporting {policy.manifest['env']} policy from {policy_dir} to ONNX ...")
+        to_onnx(policy_dir, tmp / "policy.onnx")
+        manifest = dict(policy.manifest)
+        manifest.update(
+            deployment=deployment_section(policy.manifest),
+            onnx={"file": "policy.onnx", "input": "observation", "output": "action", "batch": "dynamic"},
+            run_config=run_config,
+            versions=versions(),
+            params_sha256=params_sha256(tmp / "params.npz"),
+        )
+        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     log(
         f"wrote {out} (policy.onnx, params.npz, manifest.json; "
         f"params sha256 {manifest['params_sha256'][:12]})"
     )
     return out
+
+
+def _replaceable(folder: Path) -> bool:
+    """An empty folder, or one that holds only what an earlier export writes."""
+    return folder.is_dir() and {p.name for p in folder.iterdir()} <= {"manifest.json", "params.npz", "policy.onnx"}
 
 
 def main(argv=None) -> int:
@@ -337,7 +366,7 @@ def main(argv=None) -> int:
     try:
         export_deployment(args.source, args.out)
     except ExportError as e:
-        parser.exit(1, f"{parser.prog}: error: {e}\n")
+        parser.exit(2, f"{parser.prog}: error: {e}\n")
     return 0
 
 
