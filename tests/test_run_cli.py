@@ -121,8 +121,17 @@ def test_max_minutes_ends_early_with_a_checkpoint_and_the_export(tmp_path, capsy
     rows = (run / "metrics.jsonl").read_text().splitlines()
     assert len(rows) == 1 and (run / "checkpoints" / "1").is_dir()
     assert export.load(run).manifest["trained"]["iteration"] == 1
+    metrics = run / "metrics.jsonl"
+    metrics.write_text(metrics.read_text() + '{"iteration": 2, "loss/pol')  # killed mid-append
     assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 0  # continues by one
-    assert len((run / "metrics.jsonl").read_text().splitlines()) == 2
+    assert [json.loads(r)["iteration"] for r in metrics.read_text().splitlines()] == [1, 2]
+    # a metrics file that is not this run's is refused before anything is written
+    config = (run / "config.json").read_text()
+    metrics.write_text('{"epoch": 3}\n{"epoch": 4}\n')
+    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 2
+    err = capsys.readouterr().err
+    assert "metrics.jsonl: line 1 is not a metrics row" in err and len(err.strip().splitlines()) == 1
+    assert (run / "config.json").read_text() == config and metrics.read_text().startswith('{"epoch": 3}')
     assert main([*args[:-3], "--out", str(tmp_path / "b"), "--max-minutes", "0"]) == 2
     assert "--max-minutes must be positive" in capsys.readouterr().err
 

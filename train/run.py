@@ -135,11 +135,27 @@ def _symlog_curve(rows: list[dict], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def _read_rows(path: Path, upto: int) -> list[dict]:
+def _read_rows(path: Path) -> list[dict]:
+    """The rows of a run's ``metrics.jsonl``; a torn last line (a kill while appending) is dropped,
+    anything else that is not one of our rows is refused (:class:`ConfigError`)."""
     if not path.exists():
         return []
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [r for r in rows if r["iteration"] <= upto]
+    try:
+        lines = [line for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: unreadable ({type(e).__name__})") from None
+    rows = []
+    for i, line in enumerate(lines):
+        try:
+            row = json.loads(line)
+        except ValueError:
+            if i == len(lines) - 1:
+                break
+            raise ConfigError(f"{path}: line {i + 1} is not JSON; not this run's metrics") from None
+        if not (isinstance(row, dict) and isinstance(row.get("iteration"), int)):
+            raise ConfigError(f"{path}: line {i + 1} is not a metrics row of a run; not this run's metrics")
+        rows.append(row)
+    return rows
 
 
 def _write_readme(run_dir: Path, setup: Setup, meta: dict, rows: list[dict]) -> None:
@@ -216,6 +232,7 @@ def train(
 
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    earlier_rows = _read_rows(run_dir / "metrics.jsonl") if resume else []  # checked before any write
     setup = build(config, devices)
     trainer = setup.trainer
     meta = {
@@ -239,7 +256,7 @@ def train(
         state = ckpts.restore(state)
         start = int(state.iteration)
         log(f"resumed {run_dir} at iteration {start}")
-    rows = _read_rows(run_dir / "metrics.jsonl", start)
+    rows = [r for r in earlier_rows if r["iteration"] <= start]
     (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
 
     params = state.params
