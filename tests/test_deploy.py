@@ -2,6 +2,7 @@
 commands as in training, the safety layer, the watchdog, MCAP replay, and the CLIs."""
 
 import dataclasses
+import hashlib
 import json
 import math
 import re
@@ -67,6 +68,7 @@ def test_deployment_folder_is_self_contained_and_described(su_deploy):
     assert (d["action"]["deadzone_linear"], d["action"]["deadzone_angular"]) == (0.005, 0.00436)
     assert d["control_hz"] == 50 and d["collision_distance"] == 1.37
     assert m["params_sha256"] == export.params_sha256(su_deploy / "params.npz")
+    assert m["onnx_sha256"] == hashlib.sha256((su_deploy / "policy.onnx").read_bytes()).hexdigest()
     assert m["versions"]["onnxruntime"] and m["versions"]["jax2onnx"] and m["versions"]["jax"]
     assert m["parameters"]["policy"] == 702_694
     # the exporter's patches of jax.numpy (jax2onnx) stay out of this process
@@ -328,7 +330,9 @@ def _pole_depth(pose, pole, radius) -> float:
     q = observation.to_local(pose, np.asarray(pole)[None])[0]
     half = np.array([KAIROS.length / 2, KAIROS.width / 2])
     outside = np.maximum(np.abs(q) - half, 0.0)
-    return radius - float(np.linalg.norm(outside)) if outside.any() else radius + float(np.min(half - np.abs(q)))
+    return (
+        radius - float(np.linalg.norm(outside)) if outside.any() else radius + float(np.min(half - np.abs(q)))
+    )
 
 
 def _drive_at_pole(controller, pole, radius, full_scan, ticks=100):
@@ -450,7 +454,10 @@ def _tampered(src, tmp_path, edit=None, files=None):
         edit(m)
         (out / "manifest.json").write_text(json.dumps(m))
     for name, data in (files or {}).items():
-        (out / name).write_bytes(data)
+        if data is None:
+            (out / name).unlink()
+        else:
+            (out / name).write_bytes(data)
     return out
 
 
@@ -475,8 +482,14 @@ def _set(path, value):
         (lambda m: m["deployment"].pop("footprint"), None, "missing or malformed field"),
         (None, {"manifest.json": b"{not json"}, "not valid JSON"),
         (None, {"params.npz": b"PK\x03\x04 truncated"}, "params.npz: unreadable"),
-        (None, {"policy.onnx": b""}, "not a loadable ONNX model"),
-        (None, {"policy.onnx": bytes(range(256)) * 8}, "not a loadable ONNX model"),
+        (None, {"policy.onnx": b""}, "does not match the manifest's onnx_sha256"),
+        (None, {"policy.onnx": bytes(range(256)) * 8}, "does not match the manifest's onnx_sha256"),
+        (
+            _set(["onnx_sha256"], hashlib.sha256(b"junk").hexdigest()),
+            {"policy.onnx": b"junk"},
+            "not a loadable ONNX",
+        ),
+        (None, {"policy.onnx": None}, "policy.onnx is missing"),
     ],
 )
 def test_a_folder_that_cannot_be_trusted_is_refused(su_deploy, tmp_path, edit, files, message):

@@ -18,6 +18,7 @@ observation clip, and where and when it was trained. :func:`load` gives a determ
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib.metadata
 import json
 import logging
@@ -335,6 +336,7 @@ def export_deployment(source: str | Path, out: str | Path | None = None, *, log=
             run_config=run_config,
             versions=versions(),
             params_sha256=params_sha256(tmp / "params.npz"),
+            onnx_sha256=hashlib.sha256((tmp / "policy.onnx").read_bytes()).hexdigest(),
         )
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
         if out.exists():
@@ -351,7 +353,11 @@ def export_deployment(source: str | Path, out: str | Path | None = None, *, log=
 
 def _replaceable(folder: Path) -> bool:
     """An empty folder, or one that holds only what an earlier export writes."""
-    return folder.is_dir() and {p.name for p in folder.iterdir()} <= {"manifest.json", "params.npz", "policy.onnx"}
+    return folder.is_dir() and {p.name for p in folder.iterdir()} <= {
+        "manifest.json",
+        "params.npz",
+        "policy.onnx",
+    }
 
 
 def main(argv=None) -> int:

@@ -38,9 +38,9 @@ def params_sha256(params_npz: str | Path) -> str:
 
 def load_manifest(path: str | Path) -> dict:
     """The manifest of a deployment folder written by ``python -m train.export``, refused with a
-    :class:`DeployError` unless it can be trusted to drive this robot: readable, its parameters the
-    ones it was exported with (SHA-256), its ray count the network's, its control rate, footprint
-    and action scale those of the base."""
+    :class:`DeployError` unless it can be trusted to drive this robot: readable, its parameters
+    the ones it was exported with and its ONNX model the one written then (SHA-256 of each), its
+    ray count the network's, its control rate, footprint and action scale those of the base."""
     path = Path(path)
     if (path / "deploy" / "manifest.json").exists():
         path = path / "deploy"
@@ -82,6 +82,13 @@ def _check(manifest: dict, path: Path) -> None:
         raise DeployError(
             f"{path / 'params.npz'} does not match the manifest's params_sha256 (another run's?)"
         )
+    onnx = path / manifest["onnx"]["file"]
+    try:
+        onnx_digest = hashlib.sha256(onnx.read_bytes()).hexdigest()
+    except OSError:
+        raise DeployError(f"{onnx} is missing or unreadable; re-run `python -m train.export`") from None
+    if onnx_digest != manifest.get("onnx_sha256"):
+        raise DeployError(f"{onnx} does not match the manifest's onnx_sha256 (altered or another run's?)")
     d = manifest["deployment"]
     hz = float(d["control_hz"])
     if not (math.isfinite(hz) and hz > 0):
