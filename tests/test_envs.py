@@ -395,7 +395,9 @@ def test_goal_clearance_keeps_the_goal_off_obstacles_and_users(bank):
             hip = jax.vmap(lambda w, u: raw.update_goal(w, u, key, False).goal)(wt, users)
             goal = jax.vmap(lambda w, u: clear.update_goal(w, u, key, False).goal)(wt, users)
             room = jax.vmap(floors.clearance)
-            out.append((hip, goal, users["pose"][:, 0, :2], room(w.floor, hip[:, :2]), room(w.floor, goal[:, :2])))
+            out.append(
+                (hip, goal, users["pose"][:, 0, :2], room(w.floor, hip[:, :2]), room(w.floor, goal[:, :2]))
+            )
         return jax.tree.map(lambda *x: jnp.concatenate(x), *out)
 
     hip, goal, user, before, after = (np.asarray(x) for x in goals(jax.random.key(0)))

@@ -203,8 +203,9 @@ def test_free_space_query_agrees_with_the_ray_caster():
 
 
 def test_push_clear_finds_the_nearest_clear_point_next_to_one_obstacle():
-    f = Floor.from_primitives(circles=[(0.0, 0.0, 1.0)], polygons=[[(4, -1), (6, -1), (6, 1), (4, 1)]],
-                              bounds=(-10, -10, 10, 10))
+    f = Floor.from_primitives(
+        circles=[(0.0, 0.0, 1.0)], polygons=[[(4, -1), (6, -1), (6, 1), (4, 1)]], bounds=(-10, -10, 10, 10)
+    )
     # brute force: the nearest point of a fine grid whose 0.9 m disc is clear
     g = np.stack(np.meshgrid(np.linspace(-4, 9, 521), np.linspace(-4, 4, 321)), -1).reshape(-1, 2)
     free = np.asarray(jax.vmap(lambda p: floors.is_free(f, p, 0.9))(jnp.asarray(g)))
@@ -222,7 +223,9 @@ def test_push_clear_finds_the_nearest_clear_point_next_to_one_obstacle():
     assert float(floors.push_clear(f, jnp.array([9.8, -5.0]), 0.9)[0]) == pytest.approx(9.1, abs=1e-4)
     # a point exactly on a wall's face that is also the bound (where the distance has no
     # derivative: autodiff gave NaN there) still moves into the room
-    wall = Floor.from_primitives(polygons=[[(5.5, -7), (6, -7), (6, 7), (5.5, 7)]], bounds=(-5.5, -6.5, 5.5, 6.5))
+    wall = Floor.from_primitives(
+        polygons=[[(5.5, -7), (6, -7), (6, 7), (5.5, 7)]], bounds=(-5.5, -6.5, 5.5, 6.5)
+    )
     got = np.asarray(floors.push_clear(wall, jnp.array([5.5, 0.0]), 0.9))
     np.testing.assert_allclose(got, [4.6, 0.0], atol=1e-3)
 

@@ -136,6 +136,10 @@ def read_inputs(bag: str | Path, num_rays: int, num_users: int, topics: Topics =
         raise DeployError(f"{bag}: unreadable MCAP file ({type(e).__name__}: {e})") from None
     except AttributeError as e:
         raise DeployError(f"{bag}: a message has an unexpected layout ({e})") from None
+    except DeployError:
+        raise
+    except Exception as e:
+        raise DeployError(f"{bag}: corrupt MCAP file ({type(e).__name__}: {e})") from None
     for name, s in series.items():
         if not s.stamps:
             raise DeployError(f"{bag}: no messages on {name} (topics needed: {', '.join(wanted)})")

@@ -238,6 +238,8 @@ def read_bag(path: str | Path) -> Trajectory:
         raise MotionDataError(f"{path}: unreadable MCAP file ({e})") from None
     except (AttributeError, KeyError, ValueError) as e:
         raise MotionDataError(f"{path}: unexpected message layout ({e})") from None
+    except Exception as e:
+        raise MotionDataError(f"{path}: corrupt MCAP file ({type(e).__name__}: {e})") from None
     return _assemble(path.stem, topics, str(path))
 
 
@@ -297,8 +299,7 @@ def read_ros1_bag(path: str | Path) -> Trajectory:
         raise MotionDataError(f"{path}: no such file") from None
     except ReaderError as e:
         raise MotionDataError(f"{path}: not a readable ROS 1 bag ({e})") from None
-    except (struct.error, EOFError, OSError, UnicodeDecodeError, ValueError, KeyError, IndexError) as e:
-        # rosbags reads a random or damaged file's header fields as whatever they decode to
+    except Exception as e:
         raise MotionDataError(f"{path}: not a readable ROS 1 bag ({type(e).__name__}: {e})") from None
     return _assemble(path.stem, topics, str(path))
 
@@ -361,5 +362,7 @@ def convert(src: str | Path, dst: str | Path, progress=None) -> list[Path]:
     targets = [dst] if dst.suffix == ".mcap" else [dst / f"{t.name}.mcap" for t in trajectories]
     taken = [str(t) for t in targets if t.exists()]
     if taken:
-        raise MotionDataError(f"{taken[0]}: already exists; convert does not overwrite ({len(taken)} file(s))")
+        raise MotionDataError(
+            f"{taken[0]}: already exists; convert does not overwrite ({len(taken)} file(s))"
+        )
     return save(dst, trajectories)
