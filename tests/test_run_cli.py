@@ -136,6 +136,26 @@ def test_max_minutes_ends_early_with_a_checkpoint_and_the_export(tmp_path, capsy
     assert "--max-minutes must be positive" in capsys.readouterr().err
 
 
+def test_resume_falls_back_past_a_damaged_checkpoint(tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["quick", *TINY, "timesteps=12", "checkpoint_every=1", "--out", str(run), "--quiet"]
+    assert main([*args, "--max-minutes", "1e-6"]) == 0
+    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 0  # iterations 1, 2
+    for f in (run / "checkpoints" / "2").rglob("*"):
+        if f.is_file():
+            f.write_bytes(f.read_bytes()[: len(f.read_bytes()) // 3])  # a save cut short
+    assert main(["--resume", str(run), "--quiet"]) == 0  # from checkpoint 1, to the end
+    rows = [json.loads(r) for r in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3]
+    assert export.load(run).manifest["trained"]["iteration"] == 3
+    for f in (run / "checkpoints").rglob("*"):
+        if f.is_file() and f.suffix != ".json":
+            f.write_bytes(b"")
+    assert main(["--resume", str(run), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "restores into this run's configuration" in err and len(err.strip().splitlines()) == 1
+
+
 def test_init_from_starts_from_the_other_runs_learned_state(tmp_path, capsys):
     import jax
     from flax import traverse_util

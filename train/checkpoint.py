@@ -24,6 +24,10 @@ def _flat(tree) -> dict:
     return {f"{i:05d}": jax.random.key_data(x) if _is_key(x) else x for i, x in enumerate(leaves) if x.size}
 
 
+class CheckpointError(ValueError):
+    """No checkpoint of a run folder can be restored (the message says which were tried)."""
+
+
 class Checkpoints:
     """Numbered checkpoints (by iteration) under ``directory``; the newest ``keep`` are kept."""
 
@@ -53,6 +57,33 @@ class Checkpoints:
                 r = raw[f"{i:05d}"]
                 leaves[i] = jax.random.wrap_key_data(r, impl=jax.random.key_impl(x)) if _is_key(x) else r
         return jax.tree.unflatten(treedef, leaves)
+
+    def restore_intact(self, like, log=lambda *a: None):
+        """``(state, step)`` of the newest checkpoint that restores into ``like``; older ones are
+        tried when a newer one is damaged (each skip is logged, and the damaged folders are renamed
+        ``<step>.damaged`` so that training can save those steps again). :class:`CheckpointError`
+        when none restores."""
+        steps = sorted(self._manager.all_steps(), reverse=True)
+        if not steps:
+            raise CheckpointError(f"no checkpoint in {self.directory}")
+        reasons = []
+        for step in steps:
+            try:
+                state = self.restore(like, step)
+            except Exception as e:  # orbax and tensorstore raise many kinds for a bad file
+                reasons.append(f"{step}: {type(e).__name__}")
+                log(
+                    f"checkpoint {step} in {self.directory} does not restore ({type(e).__name__}); "
+                    "trying an older one"
+                )
+                continue
+            for bad in steps[: steps.index(step)]:
+                (self.directory / str(bad)).rename(self.directory / f"{bad}.damaged")
+            self._manager.reload()
+            return state, step
+        raise CheckpointError(
+            f"no checkpoint in {self.directory} restores into this run's configuration ({', '.join(reasons)})"
+        )
 
     def close(self) -> None:
         self._manager.close()

@@ -26,7 +26,7 @@ from envs.nav import NavEnv
 from methd_jax.cli import OneLineParser
 from methd_jax.motion import MotionDataError
 from train import export
-from train.checkpoint import Checkpoints
+from train.checkpoint import CheckpointError, Checkpoints
 from train.ppo import Trainer
 from train.presets import PRESETS, ConfigError, RunConfig, apply_overrides, options, preset
 
@@ -253,7 +253,7 @@ def train(
         state = _warm_start(state, Path(config.init_from))
         log(f"started from the newest checkpoint of {config.init_from}")
     if resume:
-        state = ckpts.restore(state)
+        state, _ = ckpts.restore_intact(state, log)
         start = int(state.iteration)
         log(f"resumed {run_dir} at iteration {start}")
     rows = [r for r in earlier_rows if r["iteration"] <= start]
@@ -418,7 +418,7 @@ def main(argv=None) -> int:
             progress=not args.quiet,
             max_minutes=args.max_minutes,
         )
-    except (ConfigError, FileNotFoundError, MotionDataError) as err:
+    except (ConfigError, CheckpointError, FileNotFoundError, MotionDataError) as err:
         print(f"python -m train.run: error: {err}", file=sys.stderr)
         return 2
     except NonFiniteError as err:
