@@ -67,7 +67,9 @@ class Robot:
                 f"control_dt {cfg.control_dt} is not a whole number of MJCF timesteps "
                 f"({self.mj_model.opt.timestep})"
             )
-        self.model = mjx.put_model(self.mj_model)
+        # this process's own device: MJX's default, jax.devices()[0], belongs to process 0 when
+        # several processes train together (jax.distributed)
+        self.model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
 
     def init(self, pose: jax.Array) -> mjx.Data:
         """A base at rest at ``pose`` = (x, y, yaw)."""

@@ -77,8 +77,13 @@ class Checkpoints:
                     "trying an older one"
                 )
                 continue
-            for bad in steps[: steps.index(step)]:
-                (self.directory / str(bad)).rename(self.directory / f"{bad}.damaged")
+            if jax.process_index() == 0:
+                for bad in steps[: steps.index(step)]:
+                    (self.directory / str(bad)).rename(self.directory / f"{bad}.damaged")
+            if jax.process_count() > 1:
+                from jax.experimental import multihost_utils
+
+                multihost_utils.sync_global_devices("damaged checkpoints set aside")
             self._manager.reload()
             return state, step
         raise CheckpointError(

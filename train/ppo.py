@@ -22,9 +22,9 @@ minibatch in the first epoch. Each epoch draws a fresh permutation of the whole 
 
 ``Trainer(env, network, config, num_envs)`` gives pure functions: ``init(key) -> TrainState``,
 ``update(state) -> (state, metrics)`` (one iteration) and ``train(key, iterations)``, which can be
-``jax.vmap``-ped over seeds. Environments are sharded over all local devices along the batch axis
-(``jax.sharding``, one mesh axis ``"envs"``); parameters are replicated, so the same code runs on
-one CPU, one GPU or several.
+``jax.vmap``-ped over seeds. Environments are sharded over all devices along the batch axis
+(``jax.sharding``, one mesh axis ``"envs"``; with ``jax.distributed`` the devices of every process);
+parameters are replicated, so the same code runs on one CPU, one GPU, several, or several hosts.
 """
 
 from __future__ import annotations
@@ -235,7 +235,7 @@ class Trainer:
     value)``)."""
 
     def __init__(self, env, network: nn.Module, config: PPOConfig, num_envs: int, devices=None):
-        devices = list(devices if devices is not None else jax.local_devices())
+        devices = list(devices if devices is not None else jax.devices())
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
         if num_envs % len(devices):

@@ -25,7 +25,7 @@ from envs.guide import GuideEnv
 from envs.nav import NavEnv
 from methd_jax.cli import OneLineParser
 from methd_jax.motion import MotionDataError
-from train import export
+from train import distributed, export
 from train.checkpoint import CheckpointError, Checkpoints
 from train.ppo import Trainer
 from train.presets import PRESETS, ConfigError, RunConfig, apply_overrides, options, preset
@@ -231,17 +231,23 @@ def train(
     from tqdm import tqdm
 
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    primary = distributed.is_primary()  # the process that writes the run folder
+    progress = progress and primary
     earlier_rows = _read_rows(run_dir / "metrics.jsonl") if resume else []  # checked before any write
+    distributed.barrier("run folder checked")
+    run_dir.mkdir(parents=True, exist_ok=True)
     setup = build(config, devices)
     trainer = setup.trainer
+    processes = f" in {jax.process_count()} processes" if jax.process_count() > 1 else ""
     meta = {
         "preset": preset_name,
         "overrides": list(overrides),
         "config": export.jsonable(config),
-        "device": f"{trainer.mesh.devices.size} x {jax.devices()[0].device_kind} ({jax.default_backend()})",
+        "device": f"{trainer.mesh.devices.size} x {jax.devices()[0].device_kind} "
+        f"({jax.default_backend()}){processes}",
     }
-    (run_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
+    if primary:
+        (run_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
 
     log = (lambda *a: tqdm.write(" ".join(map(str, a)), file=sys.stderr)) if progress else (lambda *a: None)
     init = jax.jit(trainer.init)
@@ -257,7 +263,8 @@ def train(
         start = int(state.iteration)
         log(f"resumed {run_dir} at iteration {start}")
     rows = [r for r in earlier_rows if r["iteration"] <= start]
-    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    if primary:
+        (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
 
     params = state.params
     meta["parameters"], meta["policy_parameters"] = networks.count(params), networks.policy_count(params)
@@ -270,7 +277,7 @@ def train(
 
     per = trainer.transitions_per_iteration
     end = config.iterations if stop_after is None else min(config.iterations, stop_after)
-    writer = SummaryWriter(str(run_dir / "tb"))
+    writer = SummaryWriter(str(run_dir / "tb")) if primary else _NoWriter()
     bar = tqdm(
         total=config.iterations * per,
         initial=start * per,
@@ -302,8 +309,9 @@ def train(
             if it > start:  # the first iteration of a process includes compilation
                 timed, timed_s = timed + 1, timed_s + dt
             row = {"iteration": it + 1, "transitions": (it + 1) * per, "seconds": dt, **m}
-            with (run_dir / "metrics.jsonl").open("a") as f:
-                f.write(json.dumps(row) + "\n")
+            if primary:
+                with (run_dir / "metrics.jsonl").open("a") as f:
+                    f.write(json.dumps(row) + "\n")
             rows.append(row)
             for k, v in m.items():
                 if k.startswith("episode/") and m["episode/count"] == 0:
@@ -318,10 +326,12 @@ def train(
             bar.set_postfix(post, refresh=False)
             bar.update(per)
             out_of_time = max_minutes is not None and time.perf_counter() - t_begin >= 60 * max_minutes
+            out_of_time = distributed.agree(out_of_time)  # every process saves the same checkpoints
             if (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations or out_of_time:
                 ckpts.save(it + 1, state)
                 last_saved = it + 1
-                _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
+                if primary:
+                    _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
             if out_of_time:
                 log(f"stopping after iteration {it + 1}: the {max_minutes:g}-minute budget is spent")
                 break
@@ -333,20 +343,36 @@ def train(
     meta["iteration"] = int(state.iteration)
     meta["wall_s"] = time.perf_counter() - t_begin
     meta["transitions_per_s"] = timed * per / timed_s if timed else per * max(1, end - start) / meta["wall_s"]
-    export.export(
-        run_dir / "policy",
-        env_name=config.env_name,
-        env=setup.env,
-        network_spec=setup.network_spec,
-        params=state.params,
-        obs_stats=state.obs_stats,
-        obs_clip=config.ppo.obs_clip,
-        trained={"run": str(run_dir), "iteration": meta["iteration"], "transitions": meta["iteration"] * per},
-    )
-    _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
-    _write_readme(run_dir, setup, meta, rows)
+    if primary:
+        export.export(
+            run_dir / "policy",
+            env_name=config.env_name,
+            env=setup.env,
+            network_spec=setup.network_spec,
+            params=state.params,
+            obs_stats=state.obs_stats,
+            obs_clip=config.ppo.obs_clip,
+            trained={
+                "run": str(run_dir),
+                "iteration": meta["iteration"],
+                "transitions": meta["iteration"] * per,
+            },
+        )
+        _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
+        _write_readme(run_dir, setup, meta, rows)
+    distributed.barrier("run folder written")
     log(f"wrote {run_dir} ({meta['transitions_per_s']:,.0f} transitions/s)")
     return {**meta, "rows": rows, "state": state}
+
+
+class _NoWriter:
+    """TensorBoard's writer on the processes that do not write the run folder."""
+
+    def add_scalar(self, *args):
+        pass
+
+    def close(self):
+        pass
 
 
 def _help_epilog() -> str:
@@ -389,12 +415,28 @@ def main(argv=None) -> int:
         help="end early (checkpoint and export) after the iteration that passes M minutes of wall time",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    cluster = parser.add_argument_group(
+        "several processes or hosts (jax.distributed; every process runs the same command)"
+    )
+    cluster.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0's coordinator")
+    cluster.add_argument("--num-processes", type=int, metavar="N", help="processes in the job")
+    cluster.add_argument("--process-id", type=int, metavar="I", help="this process's index, 0 to N-1")
+    cluster.add_argument(
+        "--distributed",
+        action="store_true",
+        help="join the job JAX detects (SLURM, Open MPI, ...) instead of the three flags above",
+    )
     args = parser.parse_args(argv)
     overrides = list(args.overrides)
     if "=" in args.preset:  # `python -m train.run num_envs=8`: the preset was left out
         overrides.insert(0, args.preset)
         args.preset = "quick"
     try:
+        cluster_flags = (args.coordinator, args.num_processes, args.process_id)
+        if args.distributed or any(x is not None for x in cluster_flags):
+            if args.out is None and args.resume is None:
+                raise ConfigError("multi-process training needs --out (or --resume): one folder for all")
+            distributed.initialize(*cluster_flags, auto=args.distributed)
         if args.max_minutes is not None and not args.max_minutes > 0:
             raise ConfigError(f"--max-minutes must be positive, got {args.max_minutes}")
         if args.resume is not None:
