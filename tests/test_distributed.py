@@ -28,11 +28,10 @@ def _env(**extra) -> dict:
 
 
 def _two_processes(*args) -> list[subprocess.CompletedProcess]:
-    port = _free_port()
+    cluster = ["--coordinator", f"localhost:{_free_port()}", "--num-processes", "2"]
     procs = [
         subprocess.Popen(
-            [sys.executable, "-m", "train.run", *args, "--coordinator", f"localhost:{port}"]
-            + ["--num-processes", "2", "--process-id", str(i)],
+            [sys.executable, "-m", "train.run", *args, *cluster, "--process-id", str(i)],
             cwd=ROOT,
             env=_env(),
             stdout=subprocess.PIPE,
