@@ -8,6 +8,7 @@ term in ``metrics`` so that training curves show them separately.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +30,16 @@ class SafetyConfig:
     """epsilon_omega of r_g, rad."""
     goal_hold: float = 0.1
     """t_g of r_g: how long the goal tolerance must be held, s."""
+    collision_margin: float = 0.0
+    """p_o fires when a ray is shorter than b_r plus this, m (the thesis: 0). With a few rays a
+    corner touches an obstacle a few cm before any ray crosses the boundary; a margin makes the
+    sparse test at least as strict as the evaluation's 720-ray one."""
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"safety.{f.name} must be a finite number >= 0, got {value!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,7 +150,7 @@ def terms(
         "distance": distance_reward(d_goal, bad),
         "goal": goal_reward(d_goal, dyaw, held, bad, safety),
         "yaw": yaw_reward(d_goal, dyaw, bad),
-        "obstacle_collision": obstacle_collision(ranges, boundary),
+        "obstacle_collision": obstacle_collision(ranges, boundary + safety.collision_margin),
         "user_collision": user_collisions(user_distances, safety),
         "critical_zone": critical_zone(user_distances, safety),
         "inflation": inflation_penalty(inflation, safety),

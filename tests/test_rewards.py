@@ -29,6 +29,7 @@ def _terms(
     a2=(0, 0, 0),
     v=(0, 0, 0),
     q=(0, 0, 0),
+    safety=SAFE,
 ):
     f = jnp.asarray
     return rewards.terms(
@@ -44,7 +45,7 @@ def _terms(
         prev_prev_action=f(a2, jnp.float32),
         velocity=f(v, jnp.float32),
         acceleration=f(q, jnp.float32),
-        safety=SAFE,
+        safety=safety,
     )
 
 
@@ -96,6 +97,10 @@ def test_touching_a_wall_collides_and_the_inflation_layer_counts_rays(side):
     assert float(touching["obstacle_collision"]) == 1.0
     clear = _terms(_wall_ranges(side, 0.02))
     assert float(clear["obstacle_collision"]) == 0.0
+    # with a collision margin the same 2 cm gap already counts, a 4 cm one does not
+    margin = SafetyConfig(collision_margin=0.03)
+    assert float(_terms(_wall_ranges(side, 0.02), safety=margin)["obstacle_collision"]) == 1.0
+    assert float(_terms(_wall_ranges(side, 0.04), safety=margin)["obstacle_collision"]) == 0.0
     # p_i by hand: rays that hit the wall, with f(l) of eq. 4.13 from the same ranges
     r = _wall_ranges(side, 0.2)
     f = np.asarray(KAIROS.inflation_distance(jnp.asarray(r), ANGLES))
