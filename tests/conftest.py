@@ -1,9 +1,11 @@
-"""Shared helpers: MuJoCo's own ray casting as the independent reference; a compilation cache."""
+"""Shared helpers: MuJoCo's own ray casting as the independent reference; a compilation cache; a
+bounded fuzzer of file readers."""
 
 import atexit
 import os
 import shutil
 import tempfile
+import time
 import types
 from pathlib import Path
 
@@ -95,3 +97,47 @@ def export_random_policy(folder: Path, env, env_name: str, net, seed: int) -> Pa
         obs_clip=5.0,
         trained={"run": "test", "iteration": 0, "transitions": 0},
     )
+
+
+# -- fuzzing (bounded in time) ---------------------------------------------------------------
+
+BUDGET = 8.0
+"""Seconds of fuzzing per target (each also stops after ``CASES`` cases)."""
+CASES = 40
+
+
+def mutate(data: bytes, rng: np.random.Generator) -> bytes:
+    """One random corruption of ``data``: random bytes, a cut, bit flips, a span overwritten with
+    noise or zeros, or a span deleted."""
+    n = len(data)
+    kind = rng.integers(6)
+    if kind == 0:
+        return rng.bytes(int(rng.integers(0, 4096)))
+    if kind == 1:
+        return data[: int(rng.integers(0, n))]
+    buf = bytearray(data)
+    if kind == 2:
+        for i in rng.integers(0, n, int(rng.integers(1, 17))):
+            buf[i] ^= 1 << int(rng.integers(8))
+        return bytes(buf)
+    start = int(rng.integers(0, n))
+    stop = min(n, start + int(rng.integers(1, 257)))
+    if kind == 3:
+        buf[start:stop] = rng.bytes(stop - start)
+    elif kind == 4:
+        buf[start:stop] = bytes(stop - start)
+    else:
+        del buf[start:stop]
+    return bytes(buf)
+
+
+def fuzz(target, original: bytes, seed: int) -> dict:
+    """Runs ``target(corrupted_bytes)`` until the budget or the case count runs out; counts outcomes."""
+    rng = np.random.default_rng(seed)
+    counts = {"refused": 0, "accepted": 0}
+    print(target.__qualname__, end=": ")
+    end = time.monotonic() + BUDGET
+    while time.monotonic() < end and sum(counts.values()) < CASES:
+        counts[target(mutate(original, rng))] += 1
+    print(counts)
+    return counts

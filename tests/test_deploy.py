@@ -6,6 +6,7 @@ import hashlib
 import json
 import math
 import re
+import shutil
 import subprocess
 import sys
 import types
@@ -15,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import export_random_policy
+from conftest import export_random_policy, fuzz
 
 import networks
 from envs.nav import NavConfig, NavEnv
@@ -445,8 +446,6 @@ def test_watchdog_stops_on_bad_inputs(su_deploy, change, now, reason):
 def _tampered(src, tmp_path, edit=None, files=None):
     """A copy of the deployment folder ``src`` with ``edit(manifest)`` applied and ``files``
     (name -> bytes) overwritten."""
-    import shutil
-
     out = tmp_path / "tampered"
     shutil.copytree(src, out)
     if edit is not None:
@@ -809,8 +808,6 @@ def test_export_cli(tmp_path, capsys, su_deploy):
 
 
 def test_export_refuses_damaged_runs_and_leaves_no_half_folder(coarse_deploy, tmp_path, capsys):
-    import shutil
-
     def run_copy(name):
         shutil.copytree(coarse_deploy.parent, tmp_path / name, ignore=shutil.ignore_patterns("deploy"))
         (tmp_path / name / "config.json").write_text("{}")
@@ -857,3 +854,60 @@ def test_replay_refuses_what_it_cannot_replay(su_deploy, tmp_path):
     odom.stamps[-1] += 86_400 * 10**9
     with pytest.raises(deploy.DeployError, match=r"/odom jumps 8\.64e\+04 s between two messages"):
         mcap_replay.check_stamps(series, "bag")
+
+
+# -- fuzzing ------------------------------------------------------------------------------
+
+
+def test_the_replay_refuses_corrupt_bags_cleanly(coarse_deploy, tmp_path):
+    """Random bytes, cuts, bit flips and damaged spans of the sample bag (conftest.fuzz)."""
+    controller = deploy.Controller(coarse_deploy, backend="numpy")
+    original = (ROOT / "assets" / "deploy_sample.mcap").read_bytes()
+    path, out = tmp_path / "fuzzed.mcap", tmp_path / "out.mcap"
+
+    def target(data):
+        path.write_bytes(data)
+        try:
+            summary = deploy.replay(controller, path, out)
+        except deploy.DeployError as e:
+            assert "\n" not in str(e)
+            return "refused"
+        assert summary["ticks"] >= 1 and out.exists()
+        return "accepted"
+
+    counts = fuzz(target, original, seed=1)
+    assert counts["refused"] >= 3 and sum(counts.values()) >= 6, counts
+
+
+def test_the_deploy_loader_refuses_corrupt_folders_cleanly(coarse_deploy, tmp_path):
+    files = {
+        name: (coarse_deploy / name).read_bytes() for name in ("manifest.json", "params.npz", "policy.onnx")
+    }
+    folder = tmp_path / "fuzzed"
+    shutil.copytree(coarse_deploy, folder)
+    good = deploy.Controller(coarse_deploy, backend="numpy")
+    x = deploy.Inputs(
+        ranges=np.full(90, 2.0),
+        robot_pose=np.zeros(3),
+        velocity=np.zeros(3),
+        users=np.array([[4.0, 0.0, 0.0, 0.0, 0.0, 0.0]]),
+        goal=np.array([1.0, 0.0, 0.0]),
+    )
+    expected = good.tick(x).twist
+    for i, (name, original) in enumerate(files.items()):
+
+        def target(data, name=name):
+            (folder / name).write_bytes(data)
+            try:
+                c = deploy.Controller(folder, backend="onnx")
+            except deploy.DeployError as e:
+                assert "\n" not in str(e)
+                return "refused"
+            finally:
+                (folder / name).write_bytes(files[name])
+            # whatever loads drives exactly as the original (hashes cover the parameters and model)
+            np.testing.assert_allclose(c.tick(x).twist, expected, atol=1e-5)
+            return "accepted"
+
+        counts = fuzz(target, original, seed=10 + i)
+        assert counts["refused"] >= 10, (name, counts)

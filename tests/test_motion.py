@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import fuzz
 from mcap_ros2.writer import Writer
 
 from methd_jax import floors, motion
@@ -16,6 +17,7 @@ from methd_jax.motion import bags, stats
 from methd_jax.motion.trajectory import (
     MotionDataError,
     TrackingGlitchWarning,
+    Trajectory,
     quat_from_yaw_pitch,
     yaw_from_quat,
 )
@@ -414,3 +416,23 @@ def test_data_that_would_load_silently_wrong_is_refused_or_repaired(tmp_path):
         (traj,) = motion.load(tmp_path / "first.mcap")
     assert any("repaired 1 tracking glitch" in str(w.message) for w in caught)
     np.testing.assert_allclose(traj.head[1:, 0], 0.5 * traj.time[1:], atol=1e-6)
+
+
+def test_the_motion_bag_reader_refuses_corrupt_files_cleanly(tmp_path):
+    """Random bytes, cuts, bit flips and damaged spans (conftest.fuzz): a one-line error naming the
+    file, or a trajectory of finite poses."""
+    source = ROOT / "assets" / "motion_sample" / "traj_0003.mcap"
+    path = tmp_path / "fuzzed.mcap"
+
+    def target(data):
+        path.write_bytes(data)
+        try:
+            traj = bags.read_bag(path)
+        except MotionDataError as e:
+            assert str(path) in str(e) and "\n" not in str(e)
+            return "refused"
+        assert isinstance(traj, Trajectory) and np.isfinite(traj.head).all() and np.isfinite(traj.wrist).all()
+        return "accepted"
+
+    counts = fuzz(target, source.read_bytes(), seed=0)
+    assert counts["refused"] >= 10 and sum(counts.values()) >= 20, counts
