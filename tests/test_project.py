@@ -90,6 +90,27 @@ def test_peak_device_memory_is_the_largest_allocator_peak():
     assert here is None if jax.default_backend() == "cpu" else here > 0
 
 
+def test_bench_device_budget_runs_what_fits_and_skips_the_rest(tmp_path):
+    out = tmp_path / "device.json"
+    r = subprocess.run(
+        [sys.executable, "-m", "train.bench", "--device-budget", "1", "--sizes", "8", "--json", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    results = json.loads(out.read_text())
+    # the first section starts inside the budget and runs to its end; the rest do not start
+    assert [row["floors"] for row in results["lidar"]] == [8] and results["lidar"][0]["ratio"] > 0
+    assert sorted(results["skipped"]) == ["envs", "train", "train_quick"]
+    rows = (tmp_path / "device.md").read_text()
+    assert "| LiDAR, 8 floors x 720 rays, scans/s |" in rows and rows.count("skipped: budget spent") == 3
+    argv = [sys.executable, "-m", "train.bench", "--device-budget", "0"]
+    bad = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 2 and "--device-budget must be positive" in bad.stderr
+
+
 def test_bench_checks_fail_when_a_peer_is_faster():
     lidar = {"floors": 64, "ratio": 0.8, "rays_agreeing_1mm": 0.99}
     results = {"lidar": [lidar], "train": {"envs": 16, "ratio_brax": 0.9, "ratio_skrl": 0.5}}

@@ -426,7 +426,19 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PNG",
         help="also measure su env-steps/s at 256-16384 environments and 8-64 obstacles; plot to PNG",
     )
+    p.add_argument(
+        "--device-budget",
+        type=float,
+        metavar="SECONDS",
+        help="the accelerator figures of docs/benchmarks.md (LiDAR vs mjx.ray at 4,096 and 16,384 floors; "
+        "su and nav at 2,048-32,768 envs; PPO su at 2,048 envs vs Brax and skrl; quick) in that order "
+        "until SECONDS are spent; writes --json (default bench.json) and its table rows (.md)",
+    )
     args = p.parse_args(argv)
+    if args.device_budget is not None:
+        if not args.device_budget > 0:
+            p.error("--device-budget must be positive")
+        return device_run(args)
     sizes = args.sizes or ([64] if args.quick else [64, 1024, 4096])
     robots = args.robots or (256 if args.quick else 4096)
     env_sizes = args.env_sizes or ([64] if args.quick else [256, 2048, 8192])
@@ -470,6 +482,84 @@ def main(argv: list[str] | None = None) -> int:
     for failure in failures:
         log(f"FAILED: {failure}")
     return 1 if failures else 0
+
+
+def device_plan(args) -> list[tuple[str, Callable]]:
+    """The sections of ``--device-budget``, most wanted first; ``--sizes``, ``--env-sizes``,
+    ``--train-envs`` and ``--repeats`` shrink them (the CPU test)."""
+    sizes = args.sizes or [4096, 16384]
+    env_sizes = args.env_sizes or [2048, 8192, 32768]
+    train_envs = args.train_envs or 2048
+    repeats = args.repeats or 5
+    return [
+        ("lidar", lambda log: bench_lidar(sizes, repeats, log)),
+        ("train", lambda log: bench_train(train_envs, 2, min(repeats, 3), log, "su")),
+        ("envs", lambda log: bench_envs(env_sizes, repeats, log)),
+        ("train_quick", lambda log: bench_train(args.train_envs or 256, 2, min(repeats, 3), log, "quick")),
+    ]
+
+
+def device_run(args) -> int:
+    """``--device-budget``: each section of :func:`device_plan` starts only while the budget lasts
+    (a section that has started runs to its end) and is otherwise recorded as skipped; then the
+    peak memory, the JSON and the table rows."""
+    budget, t0 = args.device_budget, time.perf_counter()
+    info = machine()
+    print(f"methd-jax device bench on {info['device']}, jax {info['jax']}, budget {budget:g} s", flush=True)
+    results: dict = {"machine": info, "budget_s": budget, "skipped": {}}
+    for name, section in device_plan(args):
+        spent = time.perf_counter() - t0
+        if spent >= budget:
+            results["skipped"][name] = f"budget spent ({spent:.0f} of {budget:g} s) before it started"
+            print(f"  {name}: skipped, {results['skipped'][name]}", flush=True)
+            continue
+        results[name] = section(lambda msg: print(msg, flush=True))
+        results.setdefault("section_s", {})[name] = time.perf_counter() - t0 - spent
+    results["peak_host_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    results["peak_device_memory_mb"] = peak_device_memory_mb()
+    results["wall_s"] = time.perf_counter() - t0
+    out = args.json or "bench.json"
+    with open(out, "w") as f:
+        json.dump(results, f, indent=2)
+    rows = markdown_rows(results)
+    md = os.path.splitext(out)[0] + ".md"
+    with open(md, "w") as f:
+        f.write(rows)
+    print(rows + f"\nresults written to {out} and {md} ({results['wall_s']:.0f} s)", flush=True)
+    return 0
+
+
+def markdown_rows(results: dict) -> str:
+    """The rows ``docs/benchmarks.md`` takes from a ``--device-budget`` run."""
+    device = results["machine"]["device"]
+    lines = [f"Device: {device}; jax {results['machine']['jax']}; {results['machine']['date']}", ""]
+    lines += ["| measurement | ours | peer | ratio |", "|---|---|---|---|"]
+    for r in results.get("lidar", []):
+        lines.append(
+            f"| LiDAR, {r['floors']:,} floors x 720 rays, scans/s | {r['ours_scans_per_s']:,.0f} "
+            f"| mjx.ray {r['mjx_ray_scans_per_s']:,.0f} | {r['ratio']:.1f}x |"
+        )
+    for key in ("train", "train_quick"):
+        t = results.get(key)
+        if t:
+            for peer, name in (("brax", "Brax PPO"), ("skrl", "skrl PPO")):
+                lines.append(
+                    f"| PPO `{t['preset']}`, {t['envs']:,} envs, transitions/s (updates included) "
+                    f"| {t['ours_transitions_per_s']:,.0f} | {name} {t[f'{peer}_transitions_per_s']:,.0f} "
+                    f"| {t[f'ratio_{peer}']:.1f}x |"
+                )
+    for r in results.get("envs", []):
+        what = f"`{r['env']}` env steps/s, {r['envs']:,} envs, {r['rays']} rays"
+        lines.append(f"| {what} | {r['env_steps_per_s']:,.0f} | | |")
+    peak = results.get("peak_device_memory_mb")
+    lines.append(
+        f"| peak device memory, MB | {peak:,.0f} | | |"
+        if peak is not None
+        else "| peak device memory | n/a | | |"
+    )
+    for name, why in results.get("skipped", {}).items():
+        lines.append(f"| {name} | skipped: {why} | | |")
+    return "\n".join(lines) + "\n"
 
 
 def checks(results: dict) -> list[str]:
