@@ -325,6 +325,7 @@ def export_deployment(source: str | Path, out: str | Path | None = None, *, log=
     out.parent.mkdir(parents=True, exist_ok=True)
     # built beside ``out`` and moved into place whole: a failed export leaves no half folder
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
+    tmp.chmod(0o755)  # mkdtemp's 0700 would make the deployment folder private
     try:
         shutil.copyfile(policy_dir / "params.npz", tmp / "params.npz")
         log(f"exporting {policy.manifest['env']} policy from {policy_dir} to ONNX ...")
