@@ -18,8 +18,10 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            or a wall otherwise pulls the robot into it), a 3 cm collision margin on the 90 rays
            (``env.safety.collision_margin``: without it corners graze furniture between two
            rays, which the evaluation's 720 rays count), no entropy bonus and an initial log-std
-           of -0.5 (with skrl's 0.005 and 0 the std grew to ~1.3 and stayed there).
-           Not yet at issue 21's goals; measured stages and what did not work are in
+           of -0.5 (with skrl's 0.005 and 0 the std grew to ~1.3 and stayed there). The
+           shipped policy (``assets/pretrained/su``) is two stages of it: 2,200 iterations with
+           ``env.safety.collision_margin=0``, then 1,119 from that checkpoint (``init_from=``);
+           27M transitions, ~100 min. Commands, figures and what did not work:
            ``docs/results.md``.
 ``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
 ``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
@@ -141,8 +143,8 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
     ),
     "su_cpu": (
         "SU for the 2-core CPU: procedural floors with obstacles and the lab twin (30%), the 342 "
-        "training trajectories, 90 rays, a 3 x 256 body; 43M transitions, ~1.5 h (work in progress: "
-        "docs/results.md)",
+        "training trajectories, 90 rays, a 3 x 256 body, the goal kept clear of obstacles; the "
+        "shipped policy's recipe (two stages, ~100 min: docs/results.md)",
         dataclasses.replace(
             _QUICK,
             env=dataclasses.replace(
