@@ -30,6 +30,7 @@ at the request step.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -204,3 +205,69 @@ class GuideEnv(Env):
             metrics=metrics,
             info={**state.info, "truncation": (timeout & ~success).astype(jnp.float32)},
         )
+
+
+def held_out_pairs(bank: MotionBank) -> np.ndarray:
+    """Every ordered pair of distinct trajectories of ``bank`` whose requests fall on different
+    steps (with a tie no user is first), as an (M, 2) int32 array."""
+    request = np.asarray(bank.request_step)
+    i, j = np.nonzero(request[:, None] != request[None, :])
+    return np.stack([i, j], 1).astype(np.int32)
+
+
+def pair_accuracy(
+    policy: Callable[[jax.Array], jax.Array], bank: MotionBank, pairs: np.ndarray | None = None
+) -> tuple[float, int]:
+    """GuideRL's accuracy on trajectory pairs (see :func:`pair_correct`): (accuracy, pairs)."""
+    correct = pair_correct(policy, bank, pairs)
+    return float(correct.mean()), len(correct)
+
+
+def pair_correct(
+    policy: Callable[[jax.Array], jax.Array], bank: MotionBank, pairs: np.ndarray | None = None
+) -> np.ndarray:
+    """Per pair, whether GuideRL names the first requester: both users start at their trajectories'
+    beginning (as in the evaluation's multi-user scenario), ``policy(obs15) -> action`` acts every
+    step as in :class:`GuideEnv`, and a pair is right when the sign of u_w at the first request
+    names the requester. ``pairs`` default to :func:`held_out_pairs`."""
+    pairs = held_out_pairs(bank) if pairs is None else np.asarray(pairs, np.int32)
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
+        raise ValueError(f"pairs must be a non-empty (M, 2) array, got shape {pairs.shape}")
+    if pairs.min() < 0 or pairs.max() >= bank.num_trajectories:
+        raise ValueError(
+            f"pairs index trajectories 0..{bank.num_trajectories - 1}, got {pairs.min()}..{pairs.max()}"
+        )
+    request = np.asarray(bank.request_step)[pairs]
+    if np.any(request[:, 0] == request[:, 1]):
+        raise ValueError("a pair whose users request on the same step has no first requester")
+    env = GuideEnv(GuideConfig(), bank=bank)
+    steps = int(request.min(axis=1).max())
+
+    def start(users):
+        req = bank.request_step[users]
+        w = GuideWorld(
+            users=users,
+            t=jnp.int32(0),
+            request_step=jnp.min(req),
+            intent_step=env._settled[users[jnp.argmin(req)]],
+            requester=jnp.argmin(req).astype(jnp.int32),
+            u_w=jnp.float32(0.0),
+            actions=jnp.zeros(2),
+            key=jax.random.key(0),
+        )
+        zero = jnp.float32(0.0)
+        return State(
+            w, env._observe(w), zero, zero, {k: zero for k in env._metric_names()}, {"truncation": zero}
+        )
+
+    def step(state, _):
+        return env.step(state, policy(state.obs)), state.metrics["correct_at_request"]
+
+    @jax.jit
+    def run(users):
+        states = jax.vmap(start)(users)
+        # the request's step is the last whose metrics count: scan one step past it
+        _, correct = jax.lax.scan(jax.vmap(step, (0, None)), states, None, steps + 1)
+        return correct.sum(axis=0)
+
+    return np.asarray(run(jnp.asarray(pairs))) > 0

@@ -358,6 +358,49 @@ def test_guide_pays_the_midpoint_until_the_intent_shows_and_the_choice_after(ban
     assert float(state.metrics["reward/correct"]) == pytest.approx(20.0 * sign * u_w)
 
 
+def _still_user_np(vel0, vel1, u_w):
+    """Turn toward a user standing still, else drift back to the midpoint (numpy)."""
+    s0, s1 = np.linalg.norm(vel0[:2]), np.linalg.norm(vel1[:2])
+    if min(s0, s1) < 0.05:
+        return 1.0 if s1 < s0 else -1.0
+    return float(np.clip(-u_w / 0.05, -1.0, 1.0))
+
+
+def test_pair_accuracy_follows_u_w_from_the_trajectories_beginning_to_the_first_request(bank):
+    """Against a plain numpy replay: both users from step 0, u_w += 0.05 a each step, scored by the
+    sign of u_w at the first request."""
+    pairs = guide_lib.held_out_pairs(bank)
+    request = np.asarray(bank.request_step)
+    assert len(pairs) == sum(
+        request[i] != request[j] for i in range(len(request)) for j in range(len(request))
+    )
+
+    def policy(obs):
+        s0, s1 = jnp.linalg.norm(obs[0:2]), jnp.linalg.norm(obs[3:5])
+        drift = jnp.clip(-obs[12] / 0.05, -1.0, 1.0)
+        return jnp.where(jnp.minimum(s0, s1) < 0.05, jnp.where(s1 < s0, 1.0, -1.0), drift)[None]
+
+    got = guide_lib.pair_correct(policy, bank, pairs)
+    vel = np.asarray(bank.vel_local)
+    want = []
+    for a, b in pairs:
+        first = min(request[a], request[b])
+        u_w = 0.0
+        for t in range(first):
+            u_w = float(np.clip(u_w + 0.05 * _still_user_np(vel[a, t], vel[b, t], u_w), -1.0, 1.0))
+        want.append(np.sign(u_w) == (-1.0 if request[a] < request[b] else 1.0))
+    np.testing.assert_array_equal(got, want)
+    always_second = guide_lib.pair_accuracy(lambda obs: jnp.ones(1), bank, pairs)
+    assert always_second == (np.mean(request[pairs[:, 1]] < request[pairs[:, 0]]), len(pairs))
+    assert guide_lib.pair_accuracy(lambda obs: jnp.zeros(1), bank, pairs)[0] == 0.0
+    for bad, message in (
+        (np.zeros((0, 2)), "non-empty"),
+        (np.array([[0, bank.num_trajectories]]), "index trajectories"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            guide_lib.pair_correct(policy, bank, bad)
+
+
 def test_make_rejects_bad_options(bank):
     with pytest.raises(ValueError, match="unknown environment 'walk'"):
         envs.make("walk")
