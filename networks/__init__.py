@@ -7,6 +7,7 @@ from networks.actor_critic import (
     LidarEncoder,
     count,
     policy_count,
+    transfer_inputs,
 )
 
 _CLASSES = {"ActorCritic": ActorCritic, "GuideActorCritic": GuideActorCritic}
@@ -28,4 +29,5 @@ __all__ = [
     "count",
     "from_spec",
     "policy_count",
+    "transfer_inputs",
 ]

@@ -124,6 +124,43 @@ class ActorCritic(nn.Module):
         return mean, jnp.broadcast_to(log_std, mean.shape), value
 
 
+def transfer_inputs(
+    source: dict, target: dict, num_rays: int, source_fields: dict, target_fields: dict
+) -> dict:
+    """:class:`ActorCritic` parameters ``source`` carried over to a network whose observation has
+    other fields: ``target`` (the new network's initial parameters) with every array of ``source``,
+    except that the first body layer's rows for the non-LiDAR inputs are rearranged by field name
+    (``*_fields``: name -> (start, stop) in the observation, LiDAR first). A field only the target
+    has gets zero rows, so the carried-over network starts out ignoring it. Every other array must
+    have the same shape in both."""
+    src, dst = source["params"], target["params"]
+    missing = sorted(set(source_fields) - set(target_fields))
+    if missing:
+        raise ValueError(f"the target observation lacks the source's fields {missing}")
+    for name, (a, b) in source_fields.items():
+        if target_fields[name][1] - target_fields[name][0] != b - a:
+            raise ValueError(f"field {name!r} has {b - a} values in the source, not in the target")
+    out = jax.tree.map(lambda x: x, src)
+    for path, leaf in jax.tree_util.tree_leaves_with_path(dst):
+        theirs = functools.reduce(lambda d, k: d[k.key], path, src)
+        if path[0].key != "body0" and theirs.shape != leaf.shape:
+            name = "/".join(k.key for k in path)
+            raise ValueError(f"{name}: shape {theirs.shape} in the source, {leaf.shape} in the target")
+    kernel = src["body0"]["kernel"]
+    latent = kernel.shape[0] - (max(b for _, b in source_fields.values()) - num_rays)
+    rows = jnp.zeros((dst["body0"]["kernel"].shape[0], kernel.shape[1]), kernel.dtype)
+    rows = rows.at[:latent].set(kernel[:latent])
+    for name, (a, b) in source_fields.items():
+        if a < num_rays:
+            continue
+        start = latent + target_fields[name][0] - num_rays
+        rows = rows.at[start : start + b - a].set(kernel[latent + a - num_rays : latent + b - num_rays])
+    if rows.shape[1] != dst["body0"]["kernel"].shape[1]:
+        raise ValueError("body0: the source and target bodies have different widths")
+    out["body0"] = {**src["body0"], "kernel": rows}
+    return {"params": out}
+
+
 class GuidePolicy(nn.Module):
     """GuideRL's policy: ``obs (..., 15) -> (mean, log_std)`` (the critic is a separate MLP)."""
 

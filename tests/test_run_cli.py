@@ -9,7 +9,7 @@ import pytest
 from conftest import TINY_RUN
 
 from train import export
-from train.presets import PRESETS
+from train.presets import PRESETS, ConfigError
 from train.run import main
 
 TINY = [*TINY_RUN, "timesteps=8"]
@@ -167,7 +167,7 @@ def test_init_from_starts_from_the_other_runs_learned_state(tmp_path, capsys):
     config = apply_overrides(preset("quick"), [*TINY, "env.weights.velocity=-0.6", f"init_from={source}"])
     setup = run_lib.build(config)
     fresh = jax.jit(setup.trainer.init)(jax.random.key(7))
-    warm = run_lib._warm_start(fresh, source)
+    warm = run_lib._warm_start(fresh, source, setup)
     exported = export.load(source)  # the source's final parameters and observation statistics
     ours = traverse_util.flatten_dict(jax.device_get(warm.params), sep="/")
     theirs = traverse_util.flatten_dict(jax.device_get(exported.params), sep="/")
@@ -182,6 +182,47 @@ def test_init_from_starts_from_the_other_runs_learned_state(tmp_path, capsys):
     # a run whose network does not fit is refused in one line
     assert main(["quick", *TINY, "hidden=16", f"init_from={source}", "--out", str(tmp_path / "b")]) == 2
     assert "does not fit this run" in capsys.readouterr().err
+
+
+def test_init_from_a_single_user_policy_folder_starts_a_two_user_run_that_ignores_the_new_user(tmp_path):
+    """A NavRL run warm-started from an exported SU policy acts, on any second user, exactly as the
+    SU policy does without one; its normaliser takes user 0's statistics for user 1."""
+    import jax
+    import jax.numpy as jnp
+
+    from train import run as run_lib
+    from train.presets import apply_overrides, preset
+
+    source = tmp_path / "su"
+    assert main(["quick", *TINY, "--out", str(source), "--quiet"]) == 0
+    su = export.load(source)
+    nav = apply_overrides(
+        preset("nav"), [*TINY, "env.floor.num_circles=0,0", f"init_from={source / 'policy'}"]
+    )
+    setup = run_lib.build(nav)
+    warm = run_lib._warm_start(jax.jit(setup.trainer.init)(jax.random.key(3)), source / "policy", setup)
+    layout = setup.env.observation_layout
+    u0, u1 = layout["user0"], layout["user1"]
+    mean, std = np.asarray(warm.obs_stats.mean), np.asarray(warm.obs_stats.std)
+    theirs = slice(*su.manifest["observation_layout"]["user0"])
+    np.testing.assert_allclose(mean[u0], np.asarray(su.obs_mean)[theirs], rtol=1e-6)
+    np.testing.assert_allclose(mean[u1], mean[u0], rtol=1e-6)
+    np.testing.assert_allclose(std[u1], std[u0], rtol=1e-5)
+
+    obs_nav = jax.random.normal(jax.random.key(0), (16, setup.env.observation_size)) * 2
+    obs_su = jnp.concatenate([obs_nav[:, : u1.start], obs_nav[:, u1.stop :]], axis=1)
+    warm_policy = export.Policy(su.manifest, warm.params, warm.obs_stats.mean, warm.obs_stats.std)
+    np.testing.assert_allclose(warm_policy(obs_nav), su(obs_su), atol=1e-5)
+    other = obs_nav.at[:, u1].set(100.0)
+    np.testing.assert_allclose(warm_policy(other), su(obs_su), atol=1e-5)
+
+    # a policy of another network (or a folder that holds none) is refused in one line
+    wide = apply_overrides(preset("nav"), [*TINY, "hidden=16,16"])
+    wide_setup = run_lib.build(wide)
+    with pytest.raises(ConfigError, match="is not this run's"):
+        run_lib._warm_start(
+            jax.jit(wide_setup.trainer.init)(jax.random.key(3)), source / "policy", wide_setup
+        )
 
 
 def test_out_never_overwrites_what_a_user_has(tmp_path, capsys):

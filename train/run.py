@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 import time
@@ -77,11 +78,15 @@ def build(config: RunConfig, devices=None) -> Setup:
     return Setup(config, env, spec, trainer)
 
 
-def _warm_start(state, source: Path):
-    """``state`` with the learned parts (parameters, optimiser, statistics, learning rate) of the
-    newest checkpoint of the run in ``source``; environments, key and iteration stay fresh."""
+def _warm_start(state, source: Path, setup: Setup):
+    """``state`` with the learned parts of ``source``: of a run folder, the newest checkpoint's
+    parameters, optimiser, statistics and learning rate; of an exported policy folder, its
+    parameters and observation statistics (see :func:`_from_policy`). Environments, key and
+    iteration stay fresh."""
+    if (source / "manifest.json").is_file():
+        return _from_policy(state, source, setup)
     if not (source / "checkpoints").is_dir():
-        raise ConfigError(f"init_from={source}: not a run folder with checkpoints")
+        raise ConfigError(f"init_from={source}: neither a run folder with checkpoints nor a policy folder")
     ckpts = Checkpoints(source / "checkpoints")
     try:
         if ckpts.latest() is None:
@@ -98,6 +103,54 @@ def _warm_start(state, source: Path):
         value_stats=other.value_stats,
         learning_rate=other.learning_rate,
     )
+
+
+def _from_policy(state, folder: Path, setup: Setup):
+    """``state`` started from the exported policy in ``folder``, which may see fewer observation
+    fields than this run (a single-user policy for two users): the parameters through
+    :func:`networks.transfer_inputs` (a new field starts at zero weight), each field's
+    normaliser statistics from the same field, or for a new field from its namesake up to the
+    index (``user1`` from ``user0``), weighted as one iteration of data so that they adapt. The
+    optimiser, value statistics and learning rate stay fresh."""
+    try:
+        policy = export.load(folder)
+    except (FileNotFoundError, ValueError) as err:
+        raise ConfigError(f"init_from={folder}: {err}") from None
+    spec, theirs = setup.network_spec, policy.manifest["network"]
+    same = {k: v for k, v in spec.items() if k != "init_log_std"}
+    if {k: theirs.get(k) for k in same} != same:
+        raise ConfigError(f"init_from={folder}: its network {theirs} is not this run's {spec}")
+    source = {k: tuple(v) for k, v in policy.manifest["observation_layout"].items()}
+    layout = getattr(setup.env, "observation_layout", None)
+    size = state.obs_stats.mean.shape[0]
+    target = {k: (v.start, v.stop) for k, v in layout.items()} if layout else {"obs": (0, size)}
+    if spec["class"] != "ActorCritic" and source != target:
+        raise ConfigError(f"init_from={folder}: its observation differs from this run's")
+    try:
+        if spec["class"] == "ActorCritic":
+            params = networks.transfer_inputs(policy.params, state.params, spec["num_rays"], source, target)
+        else:
+            params = policy.params
+            if _shapes(params) != _shapes(state.params):
+                raise ValueError(f"{_shapes(params)} against {_shapes(state.params)}")
+    except (ValueError, KeyError) as err:
+        raise ConfigError(f"init_from={folder}: its parameters do not fit this run ({err})") from None
+    mean, var = np.zeros(size, np.float32), np.ones(size, np.float32)
+    for name, (a, b) in target.items():
+        origin = source.get(name) or source.get(name.rstrip("0123456789") + "0")
+        if origin and origin[1] - origin[0] == b - a:
+            mean[a:b] = policy.obs_mean[origin[0] : origin[1]]
+            var[a:b] = np.asarray(policy.obs_std[origin[0] : origin[1]]) ** 2
+    stats = state.obs_stats.replace(
+        mean=mean, var=var, count=np.float32(setup.trainer.transitions_per_iteration)
+    )
+    # onto the devices (and shardings) of the fresh state's arrays
+    place = functools.partial(jax.tree.map, lambda new, old: jax.device_put(new, old.sharding))
+    return state.replace(params=place(params, state.params), obs_stats=place(stats, state.obs_stats))
+
+
+def _shapes(tree) -> list:
+    return [(jax.tree_util.keystr(k), v.shape) for k, v in jax.tree_util.tree_leaves_with_path(tree)]
 
 
 def _symlog_curve(rows: list[dict], path: Path, title: str) -> None:
@@ -256,7 +309,7 @@ def train(
     ckpts = Checkpoints(run_dir / "checkpoints")
     start = 0
     if config.init_from and not resume:
-        state = _warm_start(state, Path(config.init_from))
+        state = _warm_start(state, Path(config.init_from), setup)
         log(f"started from the newest checkpoint of {config.init_from}")
     if resume:
         state, _ = ckpts.restore_intact(state, log)
