@@ -911,3 +911,24 @@ def test_the_deploy_loader_refuses_corrupt_folders_cleanly(coarse_deploy, tmp_pa
 
         counts = fuzz(target, original, seed=10 + i)
         assert counts["refused"] >= 10, (name, counts)
+
+
+def test_guide_goal_twin_matches_the_training_goal():
+    from envs.goals import SWITCH, goal_from_weight
+    from methd_jax.deploy import guide
+
+    assert guide.SWITCH == SWITCH
+    rng = np.random.default_rng(0)
+    weights = [-1.0, -SWITCH - 1e-3, -SWITCH, 0.0, SWITCH, SWITCH + 1e-3, 1.0, *rng.uniform(-1, 1, 20)]
+    for u_w in weights:
+        hips = rng.uniform([-5, -5, -np.pi], [5, 5, np.pi], (2, 3))
+        want = np.asarray(goal_from_weight(jnp.float32(u_w), *jnp.asarray(hips, jnp.float32)))
+        got = guide.goal_from_weight(u_w, *hips)
+        np.testing.assert_allclose(got, want, atol=1e-5, err_msg=str(u_w))
+
+
+def test_guide_goal_refuses_what_it_cannot_use(coarse_deploy):
+    from methd_jax.deploy import guide
+
+    with pytest.raises(deploy.DeployError, match="not a GuideRL"):
+        guide.GuideGoal(coarse_deploy, backend="numpy")
