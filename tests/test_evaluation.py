@@ -391,6 +391,9 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys):
     for name in ("table.md", "escapes.png", "travelled.png", "distance_to_hip.png", "t_pos.png"):
         assert (out / name).stat().st_size > 1000, name
     assert "SU DRL (thesis)" in (out / "table.md").read_text()
+    # the shipped GuideRL policy's accuracy on the (4 sample) trajectories' ordered pairs
+    assert data["guide"]["pairs"] == 12 and 0.0 <= data["guide"]["accuracy"] <= 1.0
+    assert "GuideRL: the requesting user named at the request" in text
 
 
 @pytest.mark.parametrize(
@@ -401,6 +404,7 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys):
         (["--floor", "/nonexistent.json"], "not found"),
         (["--su", "/nonexistent"], "no exported policy"),
         (["--mu", "/nonexistent", "--no-mu"], "contradict"),
+        (["--guide", "/nonexistent", "--no-mu"], "no exported policy"),
     ],
 )
 def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs import guide as guide_env
 from envs.nav import NavConfig, NavEnv, load_bank
 from methd_jax import floors
 from methd_jax.cli import OneLineParser
@@ -31,10 +32,8 @@ from methd_jax.motion import MotionDataError
 from methd_jax.motion.dataset import progress_bar
 from methd_jax.motion.features import CONTROL_HZ, HipConfig
 from train import export
-from train.presets import ConfigError
+from train.presets import PRETRAINED, ConfigError
 
-PRETRAINED = Path(__file__).resolve().parents[1] / "assets" / "pretrained"
-"""The shipped policies: ``su/``, ``guide/``, ``nav/``, each an exported policy folder."""
 SAFETY_ROW = "DRL + safety"
 """The row of a policy with the deployment's safety layer between it and the base."""
 
@@ -68,12 +67,7 @@ def load_policy(
             raise ConfigError(
                 f"{run} was trained with the scripted goal source; pass its GuideRL run as --guide"
             )
-        try:
-            guide_policy = export.load(guide)
-        except (FileNotFoundError, ValueError) as err:
-            raise ConfigError(str(err)) from None
-        if guide_policy.manifest["env"] != "guide":
-            raise ConfigError(f"--guide {guide} holds a {guide_policy.manifest['env']!r} policy, not GuideRL")
+        guide_policy = load_guide(guide)
     env = NavEnv(config, bank=bank, guide_policy=guide_policy)
     return methods.Policy(env, policy, name=SAFETY_ROW if safety else "DRL", safety=safety)
 
@@ -227,11 +221,15 @@ def write_report(results: dict, out: Path, meta: dict) -> tuple[str, dict]:
     text = ["# Table 5.1, reproduced", "", _meta_text(meta), "", table, ""]
     if "procedural" in meta:
         text += [_procedural_text(meta["procedural"]), ""]
+    if "guide" in meta:
+        text += [_guide_text(meta["guide"]), ""]
     if stats_text:
         text += ["## Statistics", "", "```", stats_text, "```", ""]
     text += ["Figures: " + ", ".join(f"[{p.name}]({p.name})" for p in figures), ""]
     (out / "table.md").write_text("\n".join(text))
     payload = {"meta": meta, "summaries": summaries, "statistics": st, "thesis": metrics.THESIS}
+    if "guide" in meta:
+        payload["guide"] = meta["guide"]
     payload["episodes"] = results
     (out / "results.json").write_text(json.dumps(_json(payload), indent=1) + "\n")
     return table, st
@@ -242,6 +240,34 @@ def _procedural_text(p: dict) -> str:
         f"SU DRL on {p['episodes']} fresh procedural floors with obstacles: episodes ended by an obstacle "
         f"collision {100 * p['obstacle']:.1f}%, a user collision {100 * p['user']:.1f}%, success "
         f"{100 * p['success']:.1f}%, the time limit {100 * p['timeout']:.1f}%"
+    )
+
+
+def load_guide(run: str | Path) -> export.Policy:
+    """The GuideRL policy of a run folder or exported policy folder; :class:`ConfigError` otherwise."""
+    try:
+        policy = export.load(run)
+    except (FileNotFoundError, ValueError) as err:
+        raise ConfigError(str(err)) from None
+    if policy.manifest["env"] != "guide":
+        raise ConfigError(f"--guide {run} holds a {policy.manifest['env']!r} policy, not GuideRL")
+    return policy
+
+
+def guide_accuracy(run: str | Path, bank) -> dict:
+    """GuideRL's accuracy on every ordered pair of ``bank``'s trajectories whose requests differ
+    (see :func:`envs.guide.pair_accuracy`): ``{"accuracy": fraction, "pairs": count}``."""
+    policy = load_guide(run)
+    if len(guide_env.held_out_pairs(bank)) == 0:
+        raise ConfigError("GuideRL's accuracy needs two trajectories whose requests differ")
+    accuracy, pairs = guide_env.pair_accuracy(policy, bank)
+    return {"accuracy": accuracy, "pairs": pairs}
+
+
+def _guide_text(g: dict) -> str:
+    return (
+        f"GuideRL: the requesting user named at the request in {100 * g['accuracy']:.1f}% of "
+        f"{g['pairs']} ordered pairs of the test trajectories (thesis: 99%)"
     )
 
 
@@ -262,7 +288,10 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--mu", metavar="RUN", help="a NavRL run (or exported policy) to evaluate as MU DRL")
     parser.add_argument(
-        "--guide", metavar="RUN", help="the GuideRL run for --mu (default: the run's guide_run)"
+        "--guide",
+        metavar="RUN",
+        help="a GuideRL run (or exported policy): its accuracy on the test pairs, and the goal source of "
+        "MU DRL (default: the --mu run's guide_run, else the shipped one)",
     )
     parser.add_argument(
         "--motion",
@@ -281,7 +310,8 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--no-pretrained",
         action="store_true",
-        help="without --su: do not evaluate the shipped policies of assets/pretrained (baselines only)",
+        help="do not evaluate the shipped policies of assets/pretrained where --su / --mu / --guide "
+        "name none (baselines only)",
     )
     parser.add_argument(
         "--no-safety", action="store_true", help="skip the policies' 'DRL + safety' rows (safety layer on)"
@@ -320,12 +350,17 @@ def main(argv=None) -> int:
             su["DRL"] = load_policy(su_run, bank, "su")
             if not args.no_safety:
                 su[SAFETY_ROW] = load_policy(su_run, bank, "su", safety=SafetyConfig())
-        if args.mu:
-            if args.no_mu:
-                raise ConfigError("--mu and --no-mu contradict each other")
-            mu["DRL"] = load_policy(args.mu, bank, "nav", args.guide)
+        if args.mu and args.no_mu:
+            raise ConfigError("--mu and --no-mu contradict each other")
+        mu_run = args.mu or (None if args.no_pretrained or args.no_mu else shipped("nav"))
+        guide = args.guide or (guide_run_of(args.mu) if args.mu else None)
+        guide = guide or (None if args.no_pretrained else shipped("guide"))
+        if guide:
+            load_guide(guide)  # a bad --guide is refused before the long evaluation
+        if mu_run:
+            mu["DRL"] = load_policy(mu_run, bank, "nav", guide)
             if not args.no_safety:
-                mu[SAFETY_ROW] = load_policy(args.mu, bank, "nav", args.guide, safety=SafetyConfig())
+                mu[SAFETY_ROW] = load_policy(mu_run, bank, "nav", guide, safety=SafetyConfig())
         if mu and bank.num_trajectories < 2:
             raise ConfigError("the multi-user scenario needs at least 2 trajectories (or pass --no-mu)")
         offset = args.mu_offset % bank.num_trajectories if mu else args.mu_offset
@@ -339,10 +374,13 @@ def main(argv=None) -> int:
             "mu_offset": offset,
             "seed": args.seed,
             "su_run": str(su_run) if su_run else None,
-            "mu_run": args.mu,
+            "mu_run": str(mu_run) if mu_run else None,
+            "guide_run": str(guide) if guide else None,
             "date": time.strftime("%Y-%m-%d %H:%M"),
         }
         results = evaluate(su, mu, bank, floor, mu_offset=offset, seed=args.seed, progress=not args.quiet)
+        if guide:
+            meta["guide"] = guide_accuracy(guide, bank)
         if args.procedural:
             if not su_run:
                 raise ConfigError("--procedural needs a single-user policy (--su RUN or the shipped one)")
@@ -355,6 +393,8 @@ def main(argv=None) -> int:
     print(table)
     if "procedural" in meta:
         print(_procedural_text(meta["procedural"]))
+    if "guide" in meta:
+        print(_guide_text(meta["guide"]))
     text = _stats_text(st)
     if text:
         print(text)

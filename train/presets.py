@@ -23,8 +23,15 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            ``env.safety.collision_margin=0``, then 1,119 from that checkpoint (``init_from=``);
            27M transitions, ~100 min. Commands, figures and what did not work:
            ``docs/results.md``.
+``nav_cpu`` NavRL for a 2-core CPU: ``su_cpu``'s floors, rays, body and departures with two
+           users (Table 4.3's weights, ``su_cpu``'s scaling), the goal from the shipped GuideRL
+           policy (``assets/pretrained/guide``), started from the shipped SU policy
+           (``assets/pretrained/su``: the second user's inputs start at zero weight). The shipped
+           NavRL policy is this preset; commands and figures: ``docs/results.md``.
 ``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
 ``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
+``guide_cpu`` GuideRL for a 2-core CPU: ``guide`` with 1,024 environments for 48,000 timesteps
+           (49M transitions, ~17 min); the shipped GuideRL policy (``assets/pretrained/guide``).
 ``nav``    NavRL with two users: 2,048 environments, 960,000 timesteps; the goal comes from the
            GuideRL policy of ``guide_run=RUN_DIR`` or, without one, from the scripted source.
 =========  =====================================================================================
@@ -44,12 +51,16 @@ import inspect
 import itertools
 import math
 import textwrap
+from pathlib import Path
 
 import envs
 from envs.guide import GuideConfig
 from envs.nav import NavConfig
 from methd_jax.floors import FloorConfig
 from train.ppo import PPOConfig
+
+PRETRAINED = Path(__file__).resolve().parents[1] / "assets" / "pretrained"
+"""The shipped policies: ``su/``, ``guide/``, ``nav/``, each an exported policy folder."""
 
 
 class ConfigError(ValueError):
@@ -81,9 +92,10 @@ class RunConfig:
     checkpoint_every: int = 50
     """Iterations between checkpoints (one is always written at the end)."""
     init_from: str = ""
-    """A run folder whose newest checkpoint starts this run: parameters, optimiser, observation and
-    value statistics (same network, observation size and num_envs, since the whole checkpoint is
-    read; floors, rewards and PPO settings may differ)."""
+    """Start from a run folder's newest checkpoint (parameters, optimiser, observation and value
+    statistics; same network, observation size and num_envs; floors, rewards and PPO settings may
+    differ) or from an exported policy folder (parameters and observation statistics; the run may
+    see more observation fields, e.g. a second user, which start at zero weight)."""
 
     def __post_init__(self):
         if self.env_name not in envs.PRESETS:
@@ -135,6 +147,53 @@ _QUICK = RunConfig(
     checkpoint_every=100,
 )
 
+_SU_CPU = dataclasses.replace(
+    _QUICK,
+    env=dataclasses.replace(
+        _QUICK.env,
+        floor=_CLUTTERED_FLOOR,
+        lab_fraction=0.3,
+        motion="default",
+        goal_clearance=0.9,
+        safety=dataclasses.replace(envs.rewards.SafetyConfig(), collision_margin=0.03),
+        # p_i sums over rays: scaled so that 90 rays weigh what the thesis's 720 did
+        weights=dataclasses.replace(
+            _QUICK.env.weights, inflation=envs.rewards.SU_WEIGHTS.inflation * 720 / _CPU_RAYS
+        ),
+    ),
+    timesteps=168_000,
+    ppo=dataclasses.replace(_QUICK.ppo, entropy_scale=0.0),
+    init_log_std=-0.5,
+    hidden=(256, 256, 256),
+    checkpoint_every=200,
+)
+
+_NAV_CPU = dataclasses.replace(
+    _SU_CPU,
+    env_name="nav",
+    env=dataclasses.replace(
+        _SU_CPU.env,
+        num_users=2,
+        weights=dataclasses.replace(_SU_CPU.env.weights, acceleration=envs.rewards.NAV_WEIGHTS.acceleration),
+    ),
+    timesteps=160_000,
+    guide_run=str(PRETRAINED / "guide"),
+    init_from=str(PRETRAINED / "su"),
+)
+
+_GUIDE = RunConfig(
+    env_name="guide",
+    env=envs.PRESETS["guide"],
+    num_envs=4096,
+    timesteps=240_000,
+    hidden=(128, 128),
+    # with the small GuideRL networks the KL stays low and the adaptive rate climbs to skrl's
+    # 1e-2 cap, where the critic (one Adam with the actor) diverged after 112 iterations of a
+    # 512-env run (value statistics to 4e13, then NaN); 3e-3 ran 200 iterations cleanly
+    ppo=PPOConfig(lr_range=(1e-6, 3e-3)),
+)
+_GUIDE_CPU = dataclasses.replace(_GUIDE, num_envs=1024, timesteps=48_000, checkpoint_every=25)
+
 PRESETS: dict[str, tuple[str, RunConfig]] = {
     "quick": (
         "SU on walled floors without obstacles, 90 rays, a 3 x 128 body, a tenth of the velocity "
@@ -145,41 +204,22 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
         "SU for the 2-core CPU: procedural floors with obstacles and the lab twin (30%), the 342 "
         "training trajectories, 90 rays, a 3 x 256 body, the goal kept clear of obstacles; the "
         "shipped policy's recipe (two stages, ~100 min: docs/results.md)",
-        dataclasses.replace(
-            _QUICK,
-            env=dataclasses.replace(
-                _QUICK.env,
-                floor=_CLUTTERED_FLOOR,
-                lab_fraction=0.3,
-                motion="default",
-                goal_clearance=0.9,
-                safety=dataclasses.replace(envs.rewards.SafetyConfig(), collision_margin=0.03),
-                # p_i sums over rays: scaled so that 90 rays weigh what the thesis's 720 did
-                weights=dataclasses.replace(
-                    _QUICK.env.weights, inflation=envs.rewards.SU_WEIGHTS.inflation * 720 / _CPU_RAYS
-                ),
-            ),
-            timesteps=168_000,
-            ppo=dataclasses.replace(_QUICK.ppo, entropy_scale=0.0),
-            init_log_std=-0.5,
-            hidden=(256, 256, 256),
-            checkpoint_every=200,
-        ),
+        _SU_CPU,
+    ),
+    "guide_cpu": (
+        "GuideRL for the 2-core CPU: the guide preset with 1,024 environments, 49M transitions "
+        "(~17 min); the shipped GuideRL policy's recipe (docs/results.md)",
+        _GUIDE_CPU,
+    ),
+    "nav_cpu": (
+        "NavRL for the 2-core CPU: su_cpu's floors and departures with two users, the goal from the "
+        "shipped GuideRL policy, started from the shipped SU policy (docs/results.md)",
+        _NAV_CPU,
     ),
     "su": ("single-user policy, Table 4.4 (2,048 envs, 960k timesteps)", RunConfig()),
     "guide": (
         "GuideRL, Table 4.4 (4,096 envs, 240k timesteps)",
-        RunConfig(
-            env_name="guide",
-            env=envs.PRESETS["guide"],
-            num_envs=4096,
-            timesteps=240_000,
-            hidden=(128, 128),
-            # with the small GuideRL networks the KL stays low and the adaptive rate climbs to skrl's
-            # 1e-2 cap, where the critic (one Adam with the actor) diverged after 112 iterations of a
-            # 512-env run (value statistics to 4e13, then NaN); 3e-3 ran 200 iterations cleanly
-            ppo=PPOConfig(lr_range=(1e-6, 3e-3)),
-        ),
+        _GUIDE,
     ),
     "nav": (
         "NavRL with two users, Table 4.3/4.4 (2,048 envs, 960k timesteps); goal from guide_run= or scripted",
