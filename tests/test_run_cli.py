@@ -182,9 +182,11 @@ def test_init_from_starts_from_the_other_runs_learned_state(tmp_path, capsys):
     # a run whose network does not fit is refused in one line
     assert main(["quick", *TINY, "hidden=16", f"init_from={source}", "--out", str(tmp_path / "b")]) == 2
     assert "does not fit this run" in capsys.readouterr().err
+    # the same source's exported policy starts a two-user (NavRL) run
+    _check_two_user_start_from_su_policy(source)
 
 
-def test_init_from_a_single_user_policy_folder_starts_a_two_user_run_that_ignores_the_new_user(tmp_path):
+def _check_two_user_start_from_su_policy(source):
     """A NavRL run warm-started from an exported SU policy acts, on any second user, exactly as the
     SU policy does without one; its normaliser takes user 0's statistics for user 1."""
     import jax
@@ -193,8 +195,6 @@ def test_init_from_a_single_user_policy_folder_starts_a_two_user_run_that_ignore
     from train import run as run_lib
     from train.presets import apply_overrides, preset
 
-    source = tmp_path / "su"
-    assert main(["quick", *TINY, "--out", str(source), "--quiet"]) == 0
     su = export.load(source)
     nav = apply_overrides(
         preset("nav"), [*TINY, "env.floor.num_circles=0,0", f"init_from={source / 'policy'}"]
@@ -216,13 +216,12 @@ def test_init_from_a_single_user_policy_folder_starts_a_two_user_run_that_ignore
     other = obs_nav.at[:, u1].set(100.0)
     np.testing.assert_allclose(warm_policy(other), su(obs_su), atol=1e-5)
 
-    # a policy of another network (or a folder that holds none) is refused in one line
-    wide = apply_overrides(preset("nav"), [*TINY, "hidden=16,16"])
-    wide_setup = run_lib.build(wide)
+    # a policy of another network, or a folder that holds none, is refused in one line
+    wide_setup = run_lib.build(apply_overrides(preset("nav"), [*TINY, "hidden=16,16"]))
     with pytest.raises(ConfigError, match="is not this run's"):
-        run_lib._warm_start(
-            jax.jit(wide_setup.trainer.init)(jax.random.key(3)), source / "policy", wide_setup
-        )
+        run_lib._warm_start(warm, source / "policy", wide_setup)
+    with pytest.raises(ConfigError, match="neither a run folder with checkpoints nor a policy folder"):
+        run_lib._warm_start(warm, source / "tb", setup)
 
 
 def test_out_never_overwrites_what_a_user_has(tmp_path, capsys):
