@@ -76,11 +76,11 @@ class NavConfig:
     """Procedural floor parameters."""
     weights: rewards.RewardWeights = rewards.SU_WEIGHTS
     """Reward weights (Table 4.1 for ``su``, 4.3 for ``nav``)."""
-    safety: rewards.SafetyConfig = rewards.SafetyConfig()
+    safety: rewards.SafetyConfig = dataclasses.field(default_factory=rewards.SafetyConfig)
     """Collision, critical and inflation distances; goal tolerances."""
-    robot: robot_lib.RobotConfig = robot_lib.RobotConfig()
+    robot: robot_lib.RobotConfig = dataclasses.field(default_factory=robot_lib.RobotConfig)
     """Speed limits and control period of the base."""
-    hip: HipConfig = HipConfig()
+    hip: HipConfig = dataclasses.field(default_factory=HipConfig)
     """Where the HIP lies relative to a user."""
     action_weights: tuple[float, float, float] = (0.5, 0.3, 0.2)
     """Interpolation weights of a_t, a_{t-1}, a_{t-2} (eq. 4.18)."""

@@ -79,7 +79,7 @@ class RunConfig:
     """Parallel environments."""
     timesteps: int = 960_000
     """Steps per environment (skrl's timesteps); iterations = ceil(timesteps / ppo.rollouts)."""
-    ppo: PPOConfig = PPOConfig()
+    ppo: PPOConfig = dataclasses.field(default_factory=PPOConfig)
     """PPO hyperparameters (``ppo.<field>=value``)."""
     hidden: tuple[int, ...] = (512, 512, 512)
     """Hidden layers of the shared body (SU, NavRL) or of the actor and critic MLPs (GuideRL)."""

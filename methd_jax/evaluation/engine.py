@@ -84,7 +84,7 @@ class EngineConfig:
     """d_crit of the thesis: time within it is reported as discomfort, m."""
     collision_rays: int = 720
     """Rays of the footprint-vs-obstacle collision test (as in training's p_o)."""
-    navigator: nav.NavigatorConfig = nav.NavigatorConfig()
+    navigator: nav.NavigatorConfig = dataclasses.field(default_factory=nav.NavigatorConfig)
 
     def __post_init__(self):
         if len(self.escape_angles) == 0 or len(self.escape_distances) == 0:
