@@ -250,3 +250,29 @@ def test_bad_motion_data_is_one_line_in_train_and_evaluate(tmp_path, capsys):
     )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all("a.mcap: not an MCAP file" in line for line in err), err
+
+
+def test_a_run_resumes_with_the_configuration_it_stored(tmp_path):
+    """--resume reads the resolved configuration of config.json: a run started from Python (no
+    preset) loads, and a preset changed since does not change an existing run."""
+    import dataclasses
+
+    from train import run as run_lib
+    from train.presets import apply_overrides, preset
+
+    mine = dataclasses.replace(preset("guide"), num_envs=24, hidden=(7, 5), seed=11)
+    folder = tmp_path / "custom"
+    folder.mkdir()
+    meta = {"preset": "custom", "overrides": [], "config": export.jsonable(mine)}
+    (folder / "config.json").write_text(json.dumps(meta))
+    assert run_lib.load_config(folder) == ("custom", [], mine)
+
+    quick = apply_overrides(preset("quick"), ["seed=3"])
+    then = dataclasses.replace(quick, num_envs=64)  # what "quick" named when that run started
+    meta = {"preset": "quick", "overrides": ["seed=3"], "config": export.jsonable(then)}
+    (folder / "config.json").write_text(json.dumps(meta))
+    assert run_lib.load_config(folder)[2] == then != quick
+
+    (folder / "config.json").write_text(json.dumps({**meta, "config": {"env_name": "walk"}}))
+    with pytest.raises(ConfigError, match="its configuration does not load"):
+        run_lib.load_config(folder)

@@ -32,6 +32,7 @@ from methd_jax.motion import MotionDataError
 from methd_jax.motion.dataset import progress_bar
 from methd_jax.motion.features import CONTROL_HZ, HipConfig
 from train import export
+from train import run as run_lib
 from train.presets import PRETRAINED, ConfigError
 
 SAFETY_ROW = "DRL + safety"
@@ -119,14 +120,14 @@ def procedural(
 
 
 def guide_run_of(run: str | Path) -> str:
-    """The GuideRL run a NavRL run was trained with (its ``guide_run=`` override), or ""."""
+    """The GuideRL run a NavRL run folder was trained with (its ``guide_run``), or ""."""
     meta = Path(run) / "config.json"
     if not meta.exists():
         return ""
-    for item in json.loads(meta.read_text()).get("overrides", []):
-        if item.startswith("guide_run="):
-            return item.split("=", 1)[1]
-    return ""
+    try:
+        return run_lib.load_config(run)[2].guide_run
+    except ConfigError:
+        return ""
 
 
 def evaluate(

@@ -21,6 +21,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+import envs
 import networks
 from envs.guide import GuideEnv
 from envs.nav import NavEnv
@@ -440,12 +441,29 @@ def _help_epilog() -> str:
 
 
 def load_config(run_dir: str | Path) -> tuple[str, list[str], RunConfig]:
-    """The preset, overrides and configuration of the run in ``run_dir``."""
+    """The preset, overrides and configuration of the run in ``run_dir``: the resolved configuration
+    ``config.json`` stored when the run started, so that a run started from Python resumes and a
+    preset changed since does not change the run (a folder from before the resolved configuration
+    was stored is rebuilt from its preset and overrides)."""
     meta_path = Path(run_dir) / "config.json"
     if not meta_path.exists():
         raise ConfigError(f"{run_dir} is not a run folder (no config.json)")
-    meta = json.loads(meta_path.read_text())
-    return meta["preset"], meta["overrides"], apply_overrides(preset(meta["preset"]), meta["overrides"])
+    try:
+        meta = json.loads(meta_path.read_text())
+        name, overrides = meta["preset"], meta["overrides"]
+        stored = meta.get("config")
+    except (ValueError, KeyError, TypeError) as err:
+        raise ConfigError(f"{meta_path}: unreadable ({type(err).__name__}: {err})") from None
+    if stored is None:
+        return name, overrides, apply_overrides(preset(name), overrides)
+    try:
+        kind = stored["env_name"]
+        default = RunConfig(env_name=kind, env=envs.PRESETS[kind])
+        return name, overrides, export.from_jsonable(default, stored)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ConfigError(
+            f"{meta_path}: its configuration does not load ({type(err).__name__}: {err})"
+        ) from None
 
 
 def main(argv=None) -> int:
