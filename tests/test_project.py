@@ -125,6 +125,26 @@ def test_bench_checks_fail_when_a_peer_is_faster():
     assert bench.checks(results) == []
 
 
+def test_without_skrl_the_benchmark_names_it_and_checks_brax(monkeypatch):
+    import importlib.util
+
+    from train import skrl_peer
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "skrl" else real(name, *a)
+    )
+    assert not skrl_peer.available()
+    train = {"preset": "quick", "envs": 16, "ours_transitions_per_s": 900.0, "brax_transitions_per_s": 1000.0}
+    train |= {"ratio_brax": 0.9, "skrl_missing": skrl_peer.MISSING}
+    assert bench.checks({"lidar": [], "train": train}) == [
+        "our PPO is slower than Brax's at 16 environments (0.90x)"
+    ]
+    machine = {"device": "cpu", "jax": "0", "date": "today"}
+    rows = bench.markdown_rows({"machine": machine, "train": train})
+    assert "methd-jax[peers]" in rows and "Brax PPO 1,000" in rows
+
+
 @pytest.mark.parametrize("args", [["--sizes", "0"], ["--repeats", "-1"], ["--bogus"]])
 def test_bench_cli_rejects_bad_arguments(args):
     run = subprocess.run(

@@ -347,12 +347,6 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     )
     brax_s = statistics.median(epochs[1:])
 
-    skrl = skrl_peer.make(setup.env, setup.network_spec, cfg, num_envs, episode_length)
-    before = {role: skrl.head(role) for role in ("policy", "value")}
-    skrl_times = [sum(skrl.iteration() for _ in range(iterations)) for _ in range(repeats + 1)]
-    # a misconfigured skrl (say, an update never reached) would look fast: check both heads learned
-    updated = all(bool(jnp.any(before[role] != skrl.head(role))) for role in before)
-    skrl_s = statistics.median(skrl_times[1:])
     row = {
         "preset": preset_name,
         "envs": num_envs,
@@ -362,19 +356,31 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
         "brax_transitions_per_s": iterations * per / brax_s,
         "ours_compile_s": max(first - ours_s, 0.0),
         "brax_compile_s": max(epochs[0] - brax_s, 0.0),
-        "skrl_transitions_per_s": iterations * per / skrl_s,
-        "skrl_compile_s": max(skrl_times[0] - skrl_s, 0.0),
-        "skrl_updated_both_heads": updated,
     }
     row["ratio_brax"] = row["ours_transitions_per_s"] / row["brax_transitions_per_s"]
-    row["ratio_skrl"] = row["ours_transitions_per_s"] / row["skrl_transitions_per_s"]
+    if skrl_peer.available():
+        skrl = skrl_peer.make(setup.env, setup.network_spec, cfg, num_envs, episode_length)
+        before = {role: skrl.head(role) for role in ("policy", "value")}
+        skrl_times = [sum(skrl.iteration() for _ in range(iterations)) for _ in range(repeats + 1)]
+        # a misconfigured skrl (say, an update never reached) would look fast: check both heads learned
+        updated = all(bool(jnp.any(before[role] != skrl.head(role))) for role in before)
+        skrl_s = statistics.median(skrl_times[1:])
+        row["skrl_transitions_per_s"] = iterations * per / skrl_s
+        row["skrl_compile_s"] = max(skrl_times[0] - skrl_s, 0.0)
+        row["skrl_updated_both_heads"] = updated
+        row["ratio_skrl"] = row["ours_transitions_per_s"] / row["skrl_transitions_per_s"]
+        skrl_text = (
+            f"skrl PPO {row['skrl_transitions_per_s']:>9,.0f} ({row['ratio_skrl']:.1f}x)   "
+            f"(updates included; compile {row['ours_compile_s']:.0f} s / {row['brax_compile_s']:.0f} s / "
+            f"{row['skrl_compile_s']:.0f} s)"
+        )
+    else:
+        row["skrl_missing"] = skrl_peer.MISSING
+        skrl_text = f"skrl PPO: {skrl_peer.MISSING}, its column is left out"
     log(
         f"  train {preset_name:>5} {num_envs:>6} envs: "
         f"ours {row['ours_transitions_per_s']:>9,.0f} transitions/s   "
-        f"Brax PPO {row['brax_transitions_per_s']:>9,.0f} ({row['ratio_brax']:.1f}x)   "
-        f"skrl PPO {row['skrl_transitions_per_s']:>9,.0f} ({row['ratio_skrl']:.1f}x)   (updates included; "
-        f"compile {row['ours_compile_s']:.0f} s / {row['brax_compile_s']:.0f} s / "
-        f"{row['skrl_compile_s']:.0f} s)"
+        f"Brax PPO {row['brax_transitions_per_s']:>9,.0f} ({row['ratio_brax']:.1f}x)   {skrl_text}"
     )
     return row
 
@@ -543,6 +549,11 @@ def markdown_rows(results: dict) -> str:
         t = results.get(key)
         if t:
             for peer, name in (("brax", "Brax PPO"), ("skrl", "skrl PPO")):
+                if f"ratio_{peer}" not in t:
+                    lines.append(
+                        f"| PPO `{t['preset']}`: {name} | | {t.get(f'{peer}_missing', 'not run')} | |"
+                    )
+                    continue
                 lines.append(
                     f"| PPO `{t['preset']}`, {t['envs']:,} envs, transitions/s (updates included) "
                     f"| {t['ours_transitions_per_s']:,.0f} | {name} {t[f'{peer}_transitions_per_s']:,.0f} "
@@ -575,8 +586,8 @@ def checks(results: dict) -> list[str]:
             out.append(f"our ray-caster is slower than mjx.ray at {r['floors']} floors ({r['ratio']:.2f}x)")
     train = results["train"]
     for peer, name in (("brax", "Brax's"), ("skrl", "skrl's")):
-        ratio = train[f"ratio_{peer}"]
-        if ratio < 1.0:
+        ratio = train.get(f"ratio_{peer}")
+        if ratio is not None and ratio < 1.0:
             out.append(f"our PPO is slower than {name} at {train['envs']} environments ({ratio:.2f}x)")
     return out
 

@@ -17,6 +17,7 @@ rate (skrl's ``KLAdaptiveLR``, which ours reproduces) and every PPO coefficient 
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import time
 import warnings
@@ -28,6 +29,14 @@ from brax.envs.wrappers import training as brax_training
 
 import networks
 from train.ppo import PPOConfig
+
+MISSING = "skrl is not installed (pip install 'methd-jax[peers]', or '.[peers]' in a checkout)"
+"""What the benchmark says in place of skrl's column when the optional peer is missing."""
+
+
+def available() -> bool:
+    """Whether skrl, an optional dependency (the ``peers`` extra), can be imported."""
+    return importlib.util.find_spec("skrl") is not None
 
 
 class _Batched:
