@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib.resources
 import json
 import math
 from collections.abc import Sequence
@@ -26,7 +27,17 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-ASSETS = Path(__file__).resolve().parent.parent / "assets"
+
+def _assets() -> Path:
+    """The data folder: the checkout's ``assets/``, installed as the package ``methd_jax.assets``
+    (a wheel carries it; an editable install maps it to the checkout)."""
+    try:
+        return Path(str(importlib.resources.files("methd_jax.assets")))
+    except ModuleNotFoundError:  # run from a checkout that was never installed
+        return Path(__file__).resolve().parent.parent / "assets"
+
+
+ASSETS = _assets()
 LAB_ASSET = ASSETS / "lab_floor.json"
 
 

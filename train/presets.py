@@ -54,15 +54,14 @@ import inspect
 import itertools
 import math
 import textwrap
-from pathlib import Path
 
 import envs
 from envs.guide import GuideConfig
 from envs.nav import NavConfig
-from methd_jax.floors import FloorConfig
+from methd_jax.floors import ASSETS, FloorConfig
 from train.ppo import PPOConfig
 
-PRETRAINED = Path(__file__).resolve().parents[1] / "assets" / "pretrained"
+PRETRAINED = ASSETS / "pretrained"
 """The shipped policies: ``su/``, ``guide/``, ``nav/``, each an exported policy folder."""
 
 
