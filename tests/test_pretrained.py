@@ -19,6 +19,7 @@ from train import export
 
 SU = Path(__file__).resolve().parents[1] / "assets" / "pretrained" / "su"
 GUIDE = SU.parent / "guide"
+NAV = SU.parent / "nav"
 
 
 def test_deploy_controller_acts_as_the_jax_policy_on_recorded_observations():
@@ -67,7 +68,7 @@ def test_shipped_policy_on_the_first_ten_held_out_trajectories(first_ten):
         assert row["requested"] >= 9 and row["served"] == row["requested"]
 
 
-@pytest.mark.parametrize("folder", [SU, GUIDE], ids=["su", "guide"])
+@pytest.mark.parametrize("folder", [SU, GUIDE, NAV], ids=["su", "guide", "nav"])
 def test_a_shipped_folder_is_complete_hashed_and_carded(folder):
     kind = folder.name
     assert ev.shipped(kind) == folder
@@ -80,6 +81,10 @@ def test_a_shipped_folder_is_complete_hashed_and_carded(folder):
     card = (folder / "README.md").read_text()
     for fact in (f"python -m train.run {kind}_cpu", "seed", "wall", "transitions", "jax"):
         assert fact in card, fact
+    if kind == "guide":
+        assert deploy.GuideGoal(folder, backend="numpy").max_delta == 0.05
+    else:  # the robot-side runtime drives the base with it
+        assert deploy.Controller(folder, backend="numpy").num_users == {"su": 1, "nav": 2}[kind]
 
 
 @pytest.fixture(scope="module")
@@ -122,3 +127,27 @@ def test_deployed_guide_steps_u_w_as_the_training_environment(test_bank):
             assert guide.u_w == pytest.approx(want[t][0], abs=1e-4), (backend, t)
             np.testing.assert_allclose(goal, want[t][1], atol=1e-4, err_msg=f"{backend} {t}")
     assert np.ptp([w[0] for w in want]) > 0.5  # the pair makes GuideRL commit, not idle at 0
+
+
+def test_shipped_pair_on_the_first_five_multi_user_pairs(test_bank):
+    """NavRL with its GuideRL goal on the evaluation's first 5 MU pairs (trajectory i with i + 50,
+    reset per pair) against MU Static on the same pairs."""
+    from methd_jax.evaluation import engine as eng
+
+    lab = floors.lab()
+    rows = {"Static": methods.Static(), "DRL": ev.load_policy(NAV, test_bank, "nav", GUIDE)}
+    out = {}
+    for name, method in rows.items():
+        engine = eng.Engine(method, test_bank, lab)
+        schedule = eng.mu_schedule(test_bank, eng.start_poses(lab, engine.grid), 50)
+        first = jax.tree.map(lambda a: a[:5], schedule)
+        out[name] = metrics.summary(engine.run(first, jax.random.key(0)))
+    print(
+        {
+            k: {m: v[m] for m in ("t_pos", "served", "collisions_obstacle", "collisions_user")}
+            for k, v in out.items()
+        }
+    )
+    assert out["DRL"]["collisions_obstacle"] == 0
+    assert out["DRL"]["t_pos"][0] < out["Static"]["t_pos"][0]
+    assert out["DRL"]["served"] == out["DRL"]["requested"] >= 4
