@@ -282,6 +282,7 @@ def test_request_jitter_option(bank):
     assert early.min() >= 0 and early.max() <= 150 and early.mean() > 30
 
 
+@pytest.mark.slow  # 1 min; test_run_cli trains nav with a GuideRL goal source in the default suite
 def test_nav_goal_sources(bank):
     nav = envs.make("nav", bank=bank)
     assert nav.observation_size == 753

@@ -336,6 +336,7 @@ def synthetic_test_bank():
     return MotionBank.from_trajectories(test)
 
 
+@pytest.mark.slow  # 2.5 min; `python -m train.evaluate --no-pretrained` gives the same rows
 def test_su_baselines_on_the_synthetic_test_set(synthetic_test_bank):
     from train.evaluate import evaluate
 
