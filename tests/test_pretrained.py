@@ -88,19 +88,19 @@ def test_a_shipped_folder_is_complete_hashed_and_carded(folder):
 
 
 @pytest.fixture(scope="module")
-def test_bank():
+def held_out_bank():
     return ev.load_bank("default", "test", ev.HipConfig())
 
 
-def test_shipped_guide_names_the_next_user_on_held_out_pairs(test_bank):
+def test_shipped_guide_names_the_next_user_on_held_out_pairs(held_out_bank):
     """Every ordered pair of the 100 held-out trajectories (9,896 with distinct requests), as
     ``python -m train.evaluate`` reports it: measured 0.956 (the thesis: 0.99)."""
-    got = ev.guide_accuracy(GUIDE, test_bank)
+    got = ev.guide_accuracy(GUIDE, held_out_bank)
     print(got)
     assert got["pairs"] == 9896 and got["accuracy"] >= 0.95
 
 
-def test_deployed_guide_steps_u_w_as_the_training_environment(test_bank):
+def test_deployed_guide_steps_u_w_as_the_training_environment(held_out_bank):
     """methd_jax.deploy.GuideGoal (onnx and numpy) against the JAX policy on a held-out pair's
     recorded users: the same u_w every step and the goal of envs.goals."""
     from envs.goals import goal_from_weight
@@ -109,10 +109,10 @@ def test_deployed_guide_steps_u_w_as_the_training_environment(test_bank):
     policy = export.load(GUIDE)
     a, b, steps = 3, 53, 400
     feats = {
-        k: np.asarray(getattr(test_bank, k))[[a, b], :steps]
+        k: np.asarray(getattr(held_out_bank, k))[[a, b], :steps]
         for k in ("pose", "vel_world", "acc_world", "hip")
     }
-    feats |= {k: np.asarray(getattr(test_bank, k))[[a, b], :steps] for k in ("vel_local", "acc_local")}
+    feats |= {k: np.asarray(getattr(held_out_bank, k))[[a, b], :steps] for k in ("vel_local", "acc_local")}
     u_w, actions, want = 0.0, np.zeros(2), []
     for t in range(steps):
         obs = guide_observation(feats["vel_local"][:, t], feats["acc_local"][:, t], np.float32(u_w), actions)
@@ -129,17 +129,17 @@ def test_deployed_guide_steps_u_w_as_the_training_environment(test_bank):
     assert np.ptp([w[0] for w in want]) > 0.5  # the pair makes GuideRL commit, not idle at 0
 
 
-def test_shipped_pair_on_the_first_five_multi_user_pairs(test_bank):
+def test_shipped_pair_on_the_first_five_multi_user_pairs(held_out_bank):
     """NavRL with its GuideRL goal on the evaluation's first 5 MU pairs (trajectory i with i + 50,
     reset per pair) against MU Static on the same pairs."""
     from methd_jax.evaluation import engine as eng
 
     lab = floors.lab()
-    rows = {"Static": methods.Static(), "DRL": ev.load_policy(NAV, test_bank, "nav", GUIDE)}
+    rows = {"Static": methods.Static(), "DRL": ev.load_policy(NAV, held_out_bank, "nav", GUIDE)}
     out = {}
     for name, method in rows.items():
-        engine = eng.Engine(method, test_bank, lab)
-        schedule = eng.mu_schedule(test_bank, eng.start_poses(lab, engine.grid), 50)
+        engine = eng.Engine(method, held_out_bank, lab)
+        schedule = eng.mu_schedule(held_out_bank, eng.start_poses(lab, engine.grid), 50)
         first = jax.tree.map(lambda a: a[:5], schedule)
         out[name] = metrics.summary(engine.run(first, jax.random.key(0)))
     print(

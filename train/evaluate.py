@@ -52,14 +52,8 @@ def load_policy(
 
     ``kind`` is "su" (a single-user policy) or "nav" (NavRL; its GuideRL policy comes from ``guide``
     or from the run's own ``guide_run``). ``safety``: with the deployment's safety layer."""
-    try:
-        policy = export.load(run)
-    except (FileNotFoundError, ValueError) as err:
-        raise ConfigError(str(err)) from None
-    got = policy.manifest["env"]
-    if got != kind:
-        want = {"su": "--su takes a single-user (su) run", "nav": "--mu takes a NavRL (nav) run"}[kind]
-        raise ConfigError(f"{run} holds a {got!r} policy; {want}")
+    want = {"su": "--su takes a single-user (su) run", "nav": "--mu takes a NavRL (nav) run"}[kind]
+    policy = _load(run, kind, want)
     config = export.from_jsonable(NavConfig(), policy.manifest["env_config"])
     guide_policy = None
     if kind == "nav":
@@ -81,12 +75,7 @@ def procedural(
     the time limit). ``floor``: the floor distribution (default: the policy's own training floors);
     the floors come from ``seed``'s keys, which training never draws (it splits its own seed's key).
     Returns the share of episodes that ended in each way and their count."""
-    try:
-        policy = export.load(run)
-    except (FileNotFoundError, ValueError) as err:
-        raise ConfigError(str(err)) from None
-    if policy.manifest["env"] != "su":
-        raise ConfigError(f"{run} holds a {policy.manifest['env']!r} policy; --procedural takes a su policy")
+    policy = _load(run, "su", "--procedural takes a su policy")
     trained = export.from_jsonable(NavConfig(), policy.manifest["env_config"])
     config = dataclasses.replace(
         trained, lab=False, lab_fraction=0.0, split="test", floor=floor or trained.floor
@@ -246,12 +235,18 @@ def _procedural_text(p: dict) -> str:
 
 def load_guide(run: str | Path) -> export.Policy:
     """The GuideRL policy of a run folder or exported policy folder; :class:`ConfigError` otherwise."""
+    return _load(run, "guide", "--guide takes a GuideRL (guide) run")
+
+
+def _load(run: str | Path, kind: str, want: str) -> export.Policy:
+    """The exported policy of ``run`` if it is a ``kind`` policy; else :class:`ConfigError` ending
+    in ``want``."""
     try:
         policy = export.load(run)
     except (FileNotFoundError, ValueError) as err:
         raise ConfigError(str(err)) from None
-    if policy.manifest["env"] != "guide":
-        raise ConfigError(f"--guide {run} holds a {policy.manifest['env']!r} policy, not GuideRL")
+    if policy.manifest["env"] != kind:
+        raise ConfigError(f"{run} holds a {policy.manifest['env']!r} policy; {want}")
     return policy
 
 
