@@ -62,6 +62,7 @@ def test_bench_quick_checks_ratios_against_the_peers(tmp_path):
     assert (
         train["preset"] == "quick" and train["envs"] == 64 and train["transitions_per_iteration"] == 64 * 32
     )
+    assert train["repeats"] == 5
     for peer in ("brax", "skrl"):
         assert train[f"ratio_{peer}"] == pytest.approx(
             train["ours_transitions_per_s"] / train[f"{peer}_transitions_per_s"]

@@ -294,11 +294,14 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
 
     Each side runs ``iterations`` PPO iterations per timed call (one ``lax.scan`` for ours, one
     Brax "training epoch" for Brax's, ``iterations`` calls of skrl's trainer for skrl's) and the
-    median of ``repeats`` steady-state calls is reported; the extra time of the calls before is
-    the compile time. Each compiles once: ``train.brax_peer`` and ``train.skrl_peer`` hand the
-    peers their state laid out as their own outputs will be (before that, Brax's first epoch and
-    skrl's environment step and models compiled twice, ~15 s and ~10 s more on 2 CPU cores).
-    Transitions/s include the updates."""
+    median of ``repeats`` steady-state calls is reported; the extra time of the first call is the
+    compile time. Our calls are interleaved with the peers' (one after each Brax epoch, from
+    Brax's progress callback, which its own timing leaves out, and one after each skrl
+    iteration), so a burst of load from elsewhere on a shared machine slows both sides of a ratio
+    alike instead of whichever happened to run then. Each compiles once: ``train.brax_peer`` and
+    ``train.skrl_peer`` hand the peers their state laid out as their own outputs will be (before
+    that, Brax's first epoch and skrl's environment step and models compiled twice, ~15 s and
+    ~10 s more on 2 CPU cores). Transitions/s include the updates."""
     from brax.training.agents.ppo import train as brax_ppo
 
     from train import brax_peer, skrl_peer
@@ -312,8 +315,13 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     episode_length = round(config.env.time_limit * CONTROL_HZ)
     run = jax.jit(trainer.run, static_argnums=1)
     state = jax.jit(trainer.init)(jax.random.key(0))
-    first, times = _timed(lambda s: run(s, iterations)[1], (state,), repeats)
-    ours_s = statistics.median(times)
+    first, _ = _timed(lambda s: run(s, iterations)[1], (state,), 0)
+    ours: dict[str, list[float]] = {"brax": [], "skrl": []}  # our steady calls beside each peer's
+
+    def ours_once(peer: str) -> None:
+        t0 = time.perf_counter()
+        jax.block_until_ready(run(state, iterations)[1])
+        ours[peer].append(time.perf_counter() - t0)
 
     brax_peer.patch_jax_for_brax()
     epochs: list[float] = []  # Brax's own per-epoch wall times (it times each training epoch)
@@ -322,6 +330,7 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     def progress(_, metrics):
         epochs.append(float(metrics["training/walltime"]) - walltime[0])
         walltime[0] = float(metrics["training/walltime"])
+        ours_once("brax")
 
     brax_ppo.train(
         environment=setup.env,
@@ -346,12 +355,14 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
         progress_fn=progress,
     )
     brax_s = statistics.median(epochs[1:])
+    ours_s = statistics.median(ours["brax"])
 
     row = {
         "preset": preset_name,
         "envs": num_envs,
         "transitions_per_iteration": per,
         "iterations_per_call": iterations,
+        "repeats": repeats,
         "ours_transitions_per_s": iterations * per / ours_s,
         "brax_transitions_per_s": iterations * per / brax_s,
         "ours_compile_s": max(first - ours_s, 0.0),
@@ -361,13 +372,20 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     if skrl_peer.available():
         skrl = skrl_peer.make(setup.env, setup.network_spec, cfg, num_envs, episode_length)
         before = {role: skrl.head(role) for role in ("policy", "value")}
-        skrl_times = [sum(skrl.iteration() for _ in range(iterations)) for _ in range(repeats + 1)]
+        skrl_times = []
+        for _ in range(repeats + 1):
+            skrl_times.append(sum(skrl.iteration() for _ in range(iterations)))
+            ours_once("skrl")
         # a misconfigured skrl (say, an update never reached) would look fast: check both heads learned
         updated = all(bool(jnp.any(before[role] != skrl.head(role))) for role in before)
         skrl_s = statistics.median(skrl_times[1:])
         row["skrl_transitions_per_s"] = iterations * per / skrl_s
         row["skrl_compile_s"] = max(skrl_times[0] - skrl_s, 0.0)
         row["skrl_updated_both_heads"] = updated
+        # all our steady calls, those beside Brax's epochs and those beside skrl's iterations
+        ours_s = statistics.median(ours["brax"] + ours["skrl"])
+        row["ours_transitions_per_s"] = iterations * per / ours_s
+        row["ratio_brax"] = row["ours_transitions_per_s"] / row["brax_transitions_per_s"]
         row["ratio_skrl"] = row["ours_transitions_per_s"] / row["skrl_transitions_per_s"]
         skrl_text = (
             f"skrl PPO {row['skrl_transitions_per_s']:>9,.0f} ({row['ratio_skrl']:.1f}x)   "
@@ -466,9 +484,14 @@ def main(argv: list[str] | None = None) -> int:
         results["floors"] = bench_floors(max(sizes), repeats, log)
         results["robot"] = bench_robot(robots, repeats, log)
         results["envs"] = bench_envs(env_sizes, repeats, log)
-    # a PPO iteration is long: a few repeats give a stable median
+    # a PPO iteration at the full batch is long: 3 repeats; --quick's iterations take a fraction
+    # of a second, and 5 interleaved repeats keep one slow call from deciding the CI check
     results["train"] = bench_train(
-        train_envs, 1 if args.quick else 2, min(repeats, 3), log, "quick" if args.quick else "su"
+        train_envs,
+        1 if args.quick else 2,
+        (args.repeats or 5) if args.quick else min(repeats, 3),
+        log,
+        "quick" if args.quick else "su",
     )
     if args.scaling:
         results["scaling"] = bench_scaling([256, 1024, 4096, 16384], [8, 16, 32, 64], repeats, log)
