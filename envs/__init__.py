@@ -10,6 +10,8 @@
 Overrides are fields of :class:`envs.nav.NavConfig` / :class:`envs.guide.GuideConfig` (for example
 ``envs.make("su", lab=True, users_visible=True)``), plus ``bank=`` (a ``MotionBank``) and, for
 ``nav``, ``guide_policy=``. Wrap with :class:`envs.wrappers.AutoReset` for training loops.
+``envs.record(env, key, steps, policy)`` records one episode for pictures
+(:class:`methd_jax.viz.Rollout`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 
 from envs import rewards
+from envs.episode import record, zero_policy
 from envs.guide import GuideConfig, GuideEnv
 from envs.nav import NavConfig, NavEnv, observation_layout
 from envs.wrappers import AutoReset
@@ -46,4 +49,14 @@ def make(name: str, **overrides):
     return NavEnv(config, **extra)
 
 
-__all__ = ["AutoReset", "GuideConfig", "GuideEnv", "NavConfig", "NavEnv", "make", "observation_layout"]
+__all__ = [
+    "AutoReset",
+    "GuideConfig",
+    "GuideEnv",
+    "NavConfig",
+    "NavEnv",
+    "make",
+    "observation_layout",
+    "record",
+    "zero_policy",
+]

@@ -240,3 +240,30 @@ def test_pyproject_lists_every_package_of_the_checkout():
         for p in (ROOT / top).rglob("__init__.py")
     }
     assert listed == found | {"methd_jax.assets"}
+
+
+def _imported_packages(path: Path) -> set[str]:
+    import ast
+
+    tree = ast.parse(path.read_text())
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+@pytest.mark.parametrize(
+    "package, forbidden",
+    [("methd_jax", {"envs", "networks", "train"}), ("networks", {"envs", "train"}), ("envs", {"train"})],
+)
+def test_imports_flow_one_way(package, forbidden):
+    """methd_jax (core) -> envs -> networks -> train: no module imports from a package downstream
+    of its own, at the top of the file or inside a function."""
+    offenders = {
+        str(path.relative_to(ROOT)): sorted(_imported_packages(path) & forbidden)
+        for path in sorted((ROOT / package).rglob("*.py"))
+    }
+    assert {k: v for k, v in offenders.items() if v} == {}

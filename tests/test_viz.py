@@ -28,7 +28,7 @@ def recorded(request):
     extra = {} if name == "guide" else {"lab": True, "num_rays": 180}
     env = envs.make(name, motion="sample", split="all", **extra)
     action = np.full(env.action_size, 0.4, np.float32)
-    return name, env, viz.record(env, jax.random.key(1), STEPS, lambda obs: action)
+    return name, env, envs.record(env, jax.random.key(1), STEPS, lambda obs: action)
 
 
 def _image(path: Path) -> Image.Image:
@@ -151,13 +151,13 @@ def test_polar_scan_and_user_weight_plots(recorded, tmp_path):
 
 def test_bad_requests_are_refused_with_a_reason(tmp_path):
     env = envs.make("guide", motion="sample", split="all")
-    r = viz.record(env, jax.random.key(0), 5)
+    r = envs.record(env, jax.random.key(0), 5)
     with pytest.raises(IndexError, match="outside the rollout's 6 steps"):
         viz.frame(r, 6)
     with pytest.raises(ValueError, match=r"\.gif or \.mp4"):
         viz.animate(r, tmp_path / "a.avi")
     with pytest.raises(ValueError, match="steps must be at least 1"):
-        viz.record(env, jax.random.key(0), 0)
+        envs.record(env, jax.random.key(0), 0)
     with pytest.raises(ValueError, match="one scan"):
         viz.polar_scan(np.ones((2, 3)))
 

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs import guide as guide_env
+from envs.evaluation import Policy
 from envs.nav import NavConfig, NavEnv, load_bank
 from methd_jax import floors
 from methd_jax.cli import OneLineParser
@@ -47,7 +48,7 @@ def shipped(kind: str) -> Path | None:
 
 def load_policy(
     run: str | Path, bank, kind: str, guide: str | Path | None = None, safety: SafetyConfig | None = None
-) -> methods.Policy:
+) -> Policy:
     """A trained policy from a run folder or an exported policy folder, as an evaluation method.
 
     ``kind`` is "su" (a single-user policy) or "nav" (NavRL; its GuideRL policy comes from ``guide``
@@ -64,7 +65,7 @@ def load_policy(
             )
         guide_policy = load_guide(guide)
     env = NavEnv(config, bank=bank, guide_policy=guide_policy)
-    return methods.Policy(env, policy, name=SAFETY_ROW if safety else "DRL", safety=safety)
+    return Policy(env, policy, name=SAFETY_ROW if safety else "DRL", safety=safety)
 
 
 def procedural(

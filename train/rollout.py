@@ -136,7 +136,7 @@ def main(argv=None) -> int:
     print(
         f"recording {args.steps} steps of {'the policy in ' + args.run if args.run else args.env or 'su'} ..."
     )
-    rollout = trimmed(viz.record(env, jax.random.key(args.seed), args.steps, policy))
+    rollout = trimmed(envs.record(env, jax.random.key(args.seed), args.steps, policy))
     print(summary(rollout))
     files = write_all(rollout, out, args.stride)
     for kind, path in files.items():

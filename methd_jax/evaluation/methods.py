@@ -8,8 +8,9 @@ A method is an object with
   engine is in Chase. :class:`Chase` either carries a robot-frame velocity ``command`` or asks the
   engine's navigator to drive to ``goal`` (``navigate``; the engine replans when the goal moves).
 
-:class:`Static` and :class:`Heuristic` are the thesis's baselines (§5.3); :class:`Policy` runs a
-trained SU policy, or NavRL with its goal from a GuideRL policy.
+:class:`Static` and :class:`Heuristic` are the thesis's baselines (§5.3). A trained policy is a
+method too, :class:`envs.evaluation.Policy`: it needs the environment's own observation and action
+mapping, so it lives with the environments (this package imports nothing from them).
 """
 
 from __future__ import annotations
@@ -24,11 +25,9 @@ from flax import struct
 from mujoco import mjx
 
 from methd_jax import floors
-from methd_jax.deploy.safety import SafetyConfig
-from methd_jax.evaluation import safety_layer
 from methd_jax.evaluation.navigator import Costmap
 from methd_jax.floors import Floor
-from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
+from methd_jax.geometry import KAIROS, wrap_angle
 from methd_jax.motion.features import CONTROL_HZ
 
 
@@ -147,83 +146,3 @@ class Heuristic:
         target = jnp.where(choose, poses[best], state.target)
         has = state.has_target | choose
         return HeuristicState(target, has), Chase(jnp.zeros(3), target, has)
-
-
-@struct.dataclass
-class PolicyState:
-    actions: jax.Array  # (3, 3) a_{t-1}, a_{t-2}, a_{t-3}
-    velocity: jax.Array  # (3,) base velocity at the previous step (for the acceleration term)
-    u_w: jax.Array  # () GuideRL's user weight
-    guide_actions: jax.Array  # (2,) GuideRL's previous actions
-
-
-class Policy:
-    """A trained policy in Chase: SU (one user), or NavRL with GuideRL choosing its goal (two users).
-
-    ``env`` is the :class:`envs.nav.NavEnv` the policy was trained on, rebuilt with the evaluation's
-    trajectories and floor (it supplies the exact observation and action mapping of training);
-    ``policy(obs) -> action`` is deterministic (see :func:`train.export.load`). For NavRL the env
-    carries the GuideRL policy as its ``guide_policy``.
-    """
-
-    multi_user = True
-
-    def __init__(self, env, policy, name: str = "DRL", safety: SafetyConfig | None = None):
-        """``safety``: put the deployment's safety layer (:mod:`.safety_layer`, the JAX twin of
-        :class:`methd_jax.deploy.safety.CollisionMonitor`) between the policy and the base."""
-        self.env = env
-        self.policy = policy
-        self.name = name
-        self.safety = safety
-        if env.config.num_users == 2 and env.guide_policy is None:
-            raise ValueError("a two-user (NavRL) policy needs a GuideRL policy for its goal")
-
-    def init(self):
-        return PolicyState(jnp.zeros((3, 3)), jnp.zeros(3), jnp.float32(0.0), jnp.zeros(2))
-
-    def chase(self, state: PolicyState, ctx: Context):
-        from envs.nav import World  # envs depends on methd_jax, not the other way round
-        from methd_jax import robot as robot_lib
-
-        k_goal, k_obs = jax.random.split(ctx.key)
-        u = self.env.config.num_users
-        world = World(
-            robot=ctx.robot,
-            floor=ctx.floor,
-            users=jnp.zeros(u, jnp.int32),
-            t=jnp.int32(0),
-            request_step=jnp.int32(2**30),  # the engine's Haptic behaviour handles the request
-            requester=jnp.int32(0),
-            actions=state.actions[1:],
-            velocity=state.velocity,
-            held=jnp.float32(0.0),
-            goal=jnp.zeros(3),
-            u_w=state.u_w,
-            goal_target=jnp.float32(0.0),
-            guide_actions=state.guide_actions,
-            pending=jnp.zeros((0, 3)),
-            dynamics=jnp.ones(2),
-            key=ctx.key,
-        )
-        world = self.env.update_goal(world, ctx.users, k_goal, scripted_step=True)
-        obs, _, _ = self.env.observe(world, state.actions[0], k_obs, ctx.users)
-        action = jnp.clip(self.policy(obs), -1.0, 1.0)
-        command = self.env.command(action, state.actions[:2])
-        if self.safety is not None:
-            users_xy = ctx.users["pose"][:, :2]
-            command = safety_layer.filter_command(
-                command,
-                ctx.scan,
-                to_local(ctx.pose, users_xy),
-                rotate(-ctx.pose[2], ctx.users["vel_world"][:, :2]),
-                ctx.present,
-                self.env.config.safety.collision_distance,
-                self.safety,
-            )
-        new = PolicyState(
-            actions=jnp.concatenate([action[None], state.actions[:2]]),
-            velocity=robot_lib.velocity(ctx.robot),
-            u_w=world.u_w,
-            guide_actions=world.guide_actions,
-        )
-        return new, Chase(command, world.goal, jnp.bool_(False))

@@ -1,7 +1,8 @@
 """See what the robot does: record an episode, draw it, animate it, open it in Foxglove.
 
-- :func:`record` (``methd_jax.viz.episode``): one episode of ``su``, ``nav`` or ``guide`` as numpy
-  arrays (:class:`Rollout`), driven by any ``policy(obs) -> action``;
+- :class:`Rollout` (``methd_jax.viz.episode``): one episode of ``su``, ``nav`` or ``guide`` as numpy
+  arrays; :func:`envs.record` records one from an environment, driven by any
+  ``policy(obs) -> action``;
 - :func:`frame`, :func:`animate`, :func:`polar_scan`, :func:`user_weight` (``methd_jax.viz.draw``): a
   top-down PNG of one step, a GIF (or MP4 with ffmpeg) of the episode, a LiDAR scan in polar form,
   u_w over time against who requested (matplotlib);
@@ -11,7 +12,7 @@
 """
 
 from methd_jax.viz.draw import animate, draw_floor, frame, polar_scan, user_weight
-from methd_jax.viz.episode import Rollout, record, zero_policy
+from methd_jax.viz.episode import Rollout
 from methd_jax.viz.foxglove import to_mcap
 
 __all__ = [
@@ -20,8 +21,6 @@ __all__ = [
     "draw_floor",
     "frame",
     "polar_scan",
-    "record",
     "to_mcap",
     "user_weight",
-    "zero_policy",
 ]

@@ -1,25 +1,17 @@
-"""One episode of an environment, recorded step by step as plain numpy arrays for pictures.
+"""One episode as plain numpy arrays for pictures: :class:`Rollout`.
 
-``record(env, key, steps, policy)`` runs a single episode under ``jit`` (one ``lax.scan``; the
-world freezes once the episode ends, so every array has ``steps + 1`` rows) and keeps what a
-picture needs: the floor, the robot's pose, the LiDAR ranges the policy saw, the users' head poses
-and HIPs, the goal, the user weight u_w and who requested when. The same :class:`Rollout` feeds
-the matplotlib frames, the GIF, the polar scan plot and the Foxglove MCAP export.
+It keeps what a picture needs: the floor, the robot's pose, the LiDAR ranges the policy saw, the
+users' head poses and HIPs, the goal, the user weight u_w and who requested when. The same
+:class:`Rollout` feeds the matplotlib frames, the GIF, the polar scan plot and the Foxglove MCAP
+export; :func:`envs.record` fills one from an environment.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from envs.guide import GuideEnv
-from envs.nav import DT, NavEnv
-from methd_jax import floors
-from methd_jax import robot as robot_lib
 from methd_jax.floors import Floor
 from methd_jax.geometry import KAIROS
 
@@ -74,101 +66,3 @@ class Rollout:
         keep = r < self.lidar_range - HIT_MARGIN
         xy = self.robot[i, :2] + r[:, None] * np.stack([np.cos(angles), np.sin(angles)], 1)
         return xy[keep]
-
-
-def zero_policy(action_size: int) -> Callable[[jax.Array], jax.Array]:
-    """The robot stands still (GuideRL keeps u_w): the default when no trained policy is given."""
-    return lambda obs: jnp.zeros(action_size)
-
-
-def record(
-    env: NavEnv | GuideEnv,
-    key: jax.Array,
-    steps: int,
-    policy: Callable[[jax.Array], jax.Array] | None = None,
-) -> Rollout:
-    """``steps`` control steps of one episode of ``env`` (from ``envs.make``) driven by
-    ``policy(obs) -> action`` (deterministic, e.g. ``train.export.load(run)``)."""
-    if steps < 1:
-        raise ValueError(f"steps must be at least 1, got {steps}")
-    if not isinstance(env, NavEnv | GuideEnv):
-        raise TypeError(f"record needs an environment from envs.make, got {type(env).__name__}")
-    policy = policy or zero_policy(env.action_size)
-    is_nav = isinstance(env, NavEnv)
-
-    def snapshot(state) -> dict:
-        w = state.pipeline_state
-        feats = jax.vmap(env.bank.at, (0, None))(w.users, w.t)
-        out = {
-            "t": w.t,
-            "users": feats["pose"],
-            "hips": feats["hip"],
-            "requested": w.t >= w.request_step,
-            "done": state.done > 0,
-            "u_w": w.u_w,
-            "success": state.metrics.get("success", jnp.float32(0.0)) > 0,
-            "obstacle": state.metrics.get("collision_obstacle", jnp.float32(0.0)) > 0,
-            "user": state.metrics.get("collision_user", jnp.float32(0.0)) > 0,
-        }
-        if is_nav:
-            out |= {
-                "robot": robot_lib.pose(w.robot),
-                "goal": w.goal,
-                "ranges": state.obs[env.observation_layout["lidar"]],
-            }
-        return out
-
-    def body(state, _):
-        nxt = env.step(state, policy(state.obs))
-        ended = state.done > 0
-        state = jax.tree.map(lambda old, new: jnp.where(ended, old, new), state, nxt)
-        return state, snapshot(state)
-
-    @jax.jit
-    def run(key):
-        state = env.reset(key)
-        first = snapshot(state)
-        state, rest = jax.lax.scan(body, state, None, length=steps)
-        rows = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
-        w = state.pipeline_state
-        return rows, w.requester, (w.floor if is_nav else None)
-
-    rows, requester, floor = run(key)
-    rows = {k: np.asarray(v) for k, v in rows.items()}
-    outcome = "running"
-    if rows["done"].any():
-        end = int(np.argmax(rows["done"]))
-        flags = [rows["obstacle"][end], rows["user"][end]]
-        outcome = "obstacle collision" if flags[0] else "user collision" if flags[1] else "time limit"
-        # GuideRL reports no success flag: an episode it ends before the limit is a success
-        if rows["success"][end] or (not is_nav and rows["requested"][end]):
-            outcome = "success"
-    if is_nav:
-        cfg = env.config
-        extra = {
-            "robot": rows["robot"],
-            "goal": rows["goal"],
-            "ranges": rows["ranges"],
-            "lidar_range": float(cfg.lidar_range),
-            "collision_distance": cfg.safety.collision_distance,
-            "critical_distance": cfg.safety.critical_distance,
-            "u_w": rows["u_w"] if cfg.num_users == 2 else None,
-        }
-        name = "su" if cfg.num_users == 1 else "nav"
-        floor = jax.tree.map(np.asarray, floor)
-    else:  # GuideRL has no floor; its users walk in the lab twin, where the motion data lives
-        floor = jax.tree.map(np.asarray, floors.lab())
-        extra = {"u_w": rows["u_w"]}
-        name = "guide"
-    return Rollout(
-        env=name,
-        floor=floor,
-        t=rows["t"] * DT,
-        users=rows["users"],
-        hips=rows["hips"],
-        requested=rows["requested"],
-        done=rows["done"],
-        requester=int(requester),
-        outcome=outcome,
-        **extra,
-    )
