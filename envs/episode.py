@@ -15,9 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.guide import GuideEnv
-from envs.nav import DT, NavEnv
+from envs.nav import NavEnv
 from methd_jax import floors
 from methd_jax import robot as robot_lib
+from methd_jax.control import CONTROL_DT
 from methd_jax.viz.episode import Rollout
 
 
@@ -109,7 +110,7 @@ def record(
     return Rollout(
         env=name,
         floor=floor,
-        t=rows["t"] * DT,
+        t=rows["t"] * CONTROL_DT,
         users=rows["users"],
         hips=rows["hips"],
         requested=rows["requested"],

@@ -39,7 +39,8 @@ from brax.envs.base import Env, State
 from flax import struct
 
 from envs.nav import GUIDE_MAX_DELTA, guide_observation, load_bank
-from methd_jax.motion.features import CONTROL_HZ, HipConfig, MotionBank
+from methd_jax.control import CONTROL_HZ
+from methd_jax.motion.features import HipConfig, MotionBank
 
 
 @dataclasses.dataclass(frozen=True)

@@ -47,13 +47,13 @@ from envs import rewards
 from envs.goals import goal_from_weight
 from methd_jax import floors, lidar, motion
 from methd_jax import robot as robot_lib
+from methd_jax.control import CONTROL_DT, CONTROL_HZ
 from methd_jax.floors import Floor, FloorConfig
 from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
-from methd_jax.motion.features import CONTROL_HZ, HipConfig, MotionBank
+from methd_jax.motion.features import HipConfig, MotionBank
 
 ENV_FLOORS = FloorConfig(room_size=(13.0, 16.0))
 """Procedural floors for the environments: large enough to hold the lab twin's user paths."""
-DT = 1.0 / CONTROL_HZ
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,11 +164,6 @@ class NavConfig:
             lo, hi = getattr(self, name)
             if not 0 < lo <= hi:
                 raise ValueError(f"{name} must be an ordered positive range, got {(lo, hi)}")
-        if abs(self.robot.control_dt * CONTROL_HZ - 1.0) > 1e-9:
-            raise ValueError(
-                f"robot.control_dt must be the control period 1/{CONTROL_HZ:g} s (the motion data, "
-                f"rewards and evaluation run at {CONTROL_HZ:g} Hz), got {self.robot.control_dt}"
-            )
         if self.num_users < 1:
             raise ValueError(f"num_users must be at least 1, got {self.num_users}")
         if self.split not in ("train", "test", "all"):
@@ -426,14 +421,16 @@ class NavEnv(Env):
                 guide_actions = jnp.stack([act, guide_actions[0]])
             else:
                 k1, k2 = jax.random.split(key)
-                switch = scripted_step & (jax.random.uniform(k1) < DT / (0.5 * sum(cfg.goal_switch_time)))
+                switch = scripted_step & (
+                    jax.random.uniform(k1) < CONTROL_DT / (0.5 * sum(cfg.goal_switch_time))
+                )
                 target = jnp.where(switch, jax.random.uniform(k2, minval=-1.0, maxval=1.0), target)
                 u_next = u_w + jnp.clip(target - u_w, -cfg.goal_rate, cfg.goal_rate)
             u_w = jnp.where(scripted_step, u_next, u_w)
             goal = goal_from_weight(u_w, hips[0], hips[1])
         else:
             k1, k2 = jax.random.split(key)
-            switch = scripted_step & (jax.random.uniform(k1) < DT / (0.5 * sum(cfg.goal_switch_time)))
+            switch = scripted_step & (jax.random.uniform(k1) < CONTROL_DT / (0.5 * sum(cfg.goal_switch_time)))
             target = jnp.where(
                 switch, jax.random.randint(k2, (), 0, cfg.num_users).astype(jnp.float32), target
             )
@@ -473,7 +470,7 @@ class NavEnv(Env):
             key, ranges, max_range=cfg.lidar_range, noise_std=cfg.lidar_noise, dropout=cfg.lidar_dropout
         )
         velocity = robot_lib.velocity(w.robot)
-        accel = (velocity - w.velocity) / DT
+        accel = (velocity - w.velocity) / CONTROL_DT
 
         p_u = to_local(pose, user_xy)  # (N, 2)
         d_u = jnp.linalg.norm(p_u, axis=1)
@@ -493,7 +490,7 @@ class NavEnv(Env):
 
         obs = jnp.concatenate([noisy, velocity, accel, action, w.actions[0], s_u.reshape(-1), s_g])
         within = (d_g < cfg.safety.goal_distance) & (jnp.abs(dyaw) < cfg.safety.goal_yaw)
-        held = jnp.where(within, w.held + DT, 0.0)  # time the r_g tolerance has been held
+        held = jnp.where(within, w.held + CONTROL_DT, 0.0)  # time the r_g tolerance has been held
         terms = rewards.terms(
             ranges=ranges,
             boundary=self._boundary,

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import mujoco
 from mujoco import mjx
 
+from methd_jax.control import CONTROL_DT
 from methd_jax.floors import ASSETS
 from methd_jax.geometry import rotate, wrap_angle
 
@@ -34,13 +35,11 @@ class RobotConfig:
     """Top linear speed, m/s: the norm of (vx, vy) is clipped to it (a user walks at <= 1.9 m/s)."""
     max_yaw_rate: float = 2.0
     """Top yaw rate, rad/s."""
-    control_dt: float = 0.02
-    """Control period, s (50 Hz, thesis §4.3.2); a whole number of MJCF timesteps."""
     mjcf: str = str(ROBOT_ASSET)
     """Path of the base's MJCF."""
 
     def __post_init__(self):
-        for name in ("max_speed", "max_yaw_rate", "control_dt"):
+        for name in ("max_speed", "max_yaw_rate"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"RobotConfig.{name} must be positive, got {getattr(self, name)}")
 
@@ -60,12 +59,12 @@ class Robot:
             raise ValueError(
                 f"{path}: expected joints x, y, yaw and actuators vx, vy, vyaw, got {names}, {actuators}"
             )
-        ratio = cfg.control_dt / self.mj_model.opt.timestep
+        ratio = CONTROL_DT / self.mj_model.opt.timestep
         self.substeps = round(ratio)
         if self.substeps < 1 or abs(ratio - self.substeps) > 1e-6:
             raise ValueError(
-                f"control_dt {cfg.control_dt} is not a whole number of MJCF timesteps "
-                f"({self.mj_model.opt.timestep})"
+                f"{path}: the control period {CONTROL_DT} s is not a whole number of its timesteps "
+                f"({self.mj_model.opt.timestep} s)"
             )
         # this process's own device: MJX's default, jax.devices()[0], belongs to process 0 when
         # several processes train together (jax.distributed)

@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import jax
@@ -508,8 +509,11 @@ def test_invalid_options_are_refused_by_name(option, message):
         NavConfig(**option)
 
 
-def test_a_control_period_other_than_the_data_rate_is_refused():
-    import dataclasses as dc
+def test_the_control_period_is_one_constant_not_a_setting():
+    """The base, the motion data, the rewards and the evaluation share methd_jax.control's clock:
+    no config carries a period of its own that could disagree with it."""
+    from train.presets import ConfigError, apply_overrides, preset
 
-    with pytest.raises(ValueError, match=r"robot\.control_dt must be the control period"):
-        NavConfig(robot=dc.replace(robot_lib.RobotConfig(), control_dt=0.015))
+    assert "control_dt" not in {f.name for f in dataclasses.fields(robot_lib.RobotConfig())}
+    with pytest.raises(ConfigError, match="control_dt"):
+        apply_overrides(preset("su"), ["env.robot.control_dt=0.015"])

@@ -10,6 +10,7 @@ import pytest
 from scipy import stats as st
 
 from methd_jax import floors, motion
+from methd_jax.control import CONTROL_DT
 from methd_jax.evaluation import engine as E
 from methd_jax.evaluation import methods as M
 from methd_jax.evaluation import metrics, stats
@@ -124,7 +125,7 @@ def test_guard_agrees_with_the_deployment_monitor():
 
     cfg = nav.NavigatorConfig()
     monitor = CollisionMonitor(
-        KAIROS.length, KAIROS.width, 720, 1.37, SafetyConfig(horizon=cfg.guard_horizon, time_step=nav.DT)
+        KAIROS.length, KAIROS.width, 720, 1.37, SafetyConfig(horizon=cfg.guard_horizon, time_step=CONTROL_DT)
     )
     guard = jax.jit(jax.vmap(lambda c, r: nav.guard(c, r, cfg)))
     rng = np.random.default_rng(2)

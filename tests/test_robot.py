@@ -1,4 +1,5 @@
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -109,8 +110,10 @@ def test_thousands_of_robots_step_in_one_jitted_call(base):
 
 
 def test_bad_config_is_rejected(tmp_path):
-    with pytest.raises(ValueError, match="whole number"):
-        Robot(RobotConfig(control_dt=0.025))
+    coarse = tmp_path / "coarse.xml"  # 0.02 s is not a whole number of 0.003 s timesteps
+    coarse.write_text(Path(RobotConfig().mjcf).read_text().replace('timestep="0.01"', 'timestep="0.003"'))
+    with pytest.raises(ValueError, match="not a whole number of its timesteps"):
+        Robot(RobotConfig(mjcf=str(coarse)))
     with pytest.raises(ValueError, match="max_speed"):
         RobotConfig(max_speed=0)
     with pytest.raises(FileNotFoundError, match="robot MJCF not found"):

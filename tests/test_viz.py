@@ -12,9 +12,9 @@ from PIL import Image
 
 import envs
 import networks
-from envs.nav import DT
 from methd_jax import floors, viz
 from methd_jax import robot as robot_lib
+from methd_jax.control import CONTROL_DT
 from methd_jax.viz.episode import OUTCOMES
 from train import rollout as rollout_cli
 
@@ -42,7 +42,7 @@ def test_rollout_holds_the_episode_step_by_step(recorded):
     name, env, r = recorded
     assert r.env == name and r.num_steps == STEPS + 1
     assert r.users.shape == (STEPS + 1, 1 if name == "su" else 2, 3) and r.hips.shape == r.users.shape
-    assert np.allclose(np.diff(r.t[~r.done])[: STEPS // 2], DT)
+    assert np.allclose(np.diff(r.t[~r.done])[: STEPS // 2], CONTROL_DT)
     # once the episode ends everything stays as it was
     if r.done.any():
         end = int(np.argmax(r.done))

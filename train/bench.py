@@ -49,7 +49,7 @@ from mujoco import mjx
 
 from methd_jax import floors as floors_lib
 from methd_jax import lidar, robot
-from methd_jax.motion.features import CONTROL_HZ
+from methd_jax.control import CONTROL_HZ
 
 BENCH_FLOORS = floors_lib.FloorConfig(triangle_fraction=0.0)
 """28 obstacles: 12 cylinders, 12 rotated boxes, 4 walls (boxes, so MJX can batch the scenes)."""

@@ -25,13 +25,14 @@ from envs.evaluation import Policy
 from envs.nav import NavConfig, NavEnv, load_bank
 from methd_jax import floors
 from methd_jax.cli import OneLineParser
+from methd_jax.control import CONTROL_HZ
 from methd_jax.deploy.safety import SafetyConfig
 from methd_jax.evaluation import engine as eng
 from methd_jax.evaluation import methods, metrics, plots, stats
 from methd_jax.floors import FloorConfig
 from methd_jax.motion import MotionDataError
 from methd_jax.motion.dataset import progress_bar
-from methd_jax.motion.features import CONTROL_HZ, HipConfig
+from methd_jax.motion.features import HipConfig
 from train import export
 from train import run as run_lib
 from train.presets import PRETRAINED, ConfigError

@@ -37,9 +37,9 @@ from flax import traverse_util
 
 import networks
 from methd_jax.cli import OneLineParser
+from methd_jax.control import CONTROL_HZ
 from methd_jax.deploy.policy import params_sha256
 from methd_jax.geometry import KAIROS
-from methd_jax.motion.features import CONTROL_HZ
 
 FORMAT = "methd-jax-policy/1"
 

@@ -24,6 +24,7 @@ from envs.nav import NavConfig, NavEnv
 from methd_jax import floors, lidar, ros_messages
 from methd_jax import robot as robot_lib
 from methd_jax.cli import OneLineParser
+from methd_jax.control import CONTROL_DT, CONTROL_HZ
 from methd_jax.evaluation import navigator as nav
 
 START_NS = 10**9
@@ -33,10 +34,10 @@ RANGE_MAX = 30.0
 def simulate(seconds: float = 10.0, seed: int = 1, motion: str = "sample") -> dict[str, np.ndarray]:
     """One episode's per-step records (stops early if the episode ends)."""
     env = NavEnv(NavConfig(lab=True, motion=motion, split="all", lidar_noise=0.0, lidar_dropout=0.0))
-    steps = round(seconds / env.config.robot.control_dt)
+    steps = round(seconds / CONTROL_DT)
     grid, nav_cfg = nav.costmap(floors.lab()), nav.NavigatorConfig()
     scale = jnp.array([env.config.robot.max_speed, env.config.robot.max_speed, env.config.robot.max_yaw_rate])
-    replan = round(nav.DT**-1)  # once a second, as the evaluation's navigator
+    replan = round(CONTROL_HZ)  # once a second, as the evaluation's navigator
 
     def record(state):
         w = state.pipeline_state

@@ -35,13 +35,13 @@ from mujoco import mjx
 
 from methd_jax import floors, lidar
 from methd_jax import robot as robot_lib
+from methd_jax.control import CONTROL_DT, CONTROL_HZ
 from methd_jax.evaluation import navigator as nav
 from methd_jax.evaluation.methods import Chase, Context
 from methd_jax.floors import Floor
 from methd_jax.geometry import KAIROS, rotate, to_local
-from methd_jax.motion.features import CONTROL_HZ, MotionBank
+from methd_jax.motion.features import MotionBank
 
-DT = 1.0 / CONTROL_HZ
 CHASE, HAPTIC, ARM, ESCAPE, INFORM = range(5)
 MODES = ("Chase", "Haptic", "Arm", "Escape", "Inform")
 
@@ -358,7 +358,7 @@ class Engine:
         request_t = jnp.where(fire, s.t, s.request_t)
         solo = jnp.arange(schedule.num_users) == s.requester
         present = jnp.where(fire, solo, s.present)
-        res = _set(res, "request_time", k, s.t * DT, fire)
+        res = _set(res, "request_time", k, s.t * CONTROL_DT, fire)
         res = _set(res, "distance_to_hip", k, jnp.linalg.norm(pose[:2] - hip[:2]), fire)
         mode, mode_t = enter(HAPTIC, fire & (mode == CHASE), mode, mode_t)
         resume = jnp.where(fire & ((mode == ESCAPE) | (mode == INFORM)), HAPTIC, resume)
@@ -369,7 +369,7 @@ class Engine:
 
         # Haptic -> Arm -> served; Escape arrival / timeout; Inform release
         arrived = nav.reached(pose, hip, ncfg)
-        res = _set(res, "t_pos", k, (s.t - request_t) * DT, (mode == HAPTIC) & arrived)
+        res = _set(res, "t_pos", k, (s.t - request_t) * CONTROL_DT, (mode == HAPTIC) & arrived)
         mode, mode_t = enter(ARM, (mode == HAPTIC) & arrived, mode, mode_t)
         served = (mode == ARM) & (mode_t >= cfg.steps(cfg.arm_time))
         escaped = (mode == ESCAPE) & (jnp.linalg.norm(s.escape_goal[:2] - pose[:2]) < ncfg.goal_tolerance)
@@ -448,7 +448,7 @@ class Engine:
         res = _add(res, "collisions_obstacle", k, hit_obstacle & ~s.touching[0])
         res = _add(res, "collisions_user", k, hit_user & ~s.touching[1])
         res = _add(res, "travelled", k, jnp.linalg.norm(new_pose[:2] - pose[:2]))
-        res = _add(res, "critical_time", k, DT * (closest < cfg.critical_distance))
+        res = _add(res, "critical_time", k, CONTROL_DT * (closest < cfg.critical_distance))
         res = res | {"min_user_distance": res["min_user_distance"].at[k].min(closest)}
         play = jnp.clip(s.play + direction, 0, self.bank.max_steps - 1)
 
@@ -456,7 +456,7 @@ class Engine:
         given_up = requested & (t - request_t >= cfg.steps(cfg.serve_timeout))
         done = served | given_up | (t >= cfg.steps(cfg.episode_limit))
         res = _set(res, "served", k, 1.0, served)
-        res = _set(res, "duration", k, t * DT, done)
+        res = _set(res, "duration", k, t * CONTROL_DT, done)
         s = s.replace(
             robot=robot,
             t=t,

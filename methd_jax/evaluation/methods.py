@@ -25,10 +25,10 @@ from flax import struct
 from mujoco import mjx
 
 from methd_jax import floors
+from methd_jax.control import CONTROL_HZ
 from methd_jax.evaluation.navigator import Costmap
 from methd_jax.floors import Floor
 from methd_jax.geometry import KAIROS, wrap_angle
-from methd_jax.motion.features import CONTROL_HZ
 
 
 @struct.dataclass

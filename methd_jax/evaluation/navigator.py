@@ -29,12 +29,10 @@ import numpy as np
 from flax import struct
 
 from methd_jax import floors
+from methd_jax.control import CONTROL_DT
 from methd_jax.evaluation.safety_layer import obstacle_scale
 from methd_jax.floors import Floor
 from methd_jax.geometry import rotate, wrap_angle
-from methd_jax.motion.features import CONTROL_HZ
-
-DT = 1.0 / CONTROL_HZ
 
 UNREACHABLE = 1e9
 """Field value of cells the goal cannot be reached from."""
@@ -218,7 +216,7 @@ def follow(
     command (to pass back next step) and the same in the robot frame (for the base). A goal whose
     field is unreachable from here gets a stop.
     """
-    dt = DT
+    dt = CONTROL_DT
     speed = cfg.max_speed if speed is None else speed
     accel = cfg.max_accel if accel is None else accel
     to_goal = goal[:2] - pose[:2]
@@ -261,7 +259,7 @@ def follow(
 
 def stop(previous: jax.Array, pose: jax.Array, cfg: NavigatorConfig) -> tuple[jax.Array, jax.Array]:
     """Brake at the acceleration limits (world-frame and robot-frame commands)."""
-    dt = DT
+    dt = CONTROL_DT
     v = previous[:2]
     n = jnp.linalg.norm(v)
     v = v * jnp.maximum(n - cfg.max_accel * dt, 0.0) / jnp.maximum(n, 1e-9)
@@ -293,5 +291,5 @@ def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Ar
     newly hit); points inside the margin are checked against the footprint itself, so the base may
     back away from a close wall but not drive into it.
     """
-    scale = obstacle_scale(command, ranges, cfg.guard_horizon, DT, cfg.guard_margin)
+    scale = obstacle_scale(command, ranges, cfg.guard_horizon, CONTROL_DT, cfg.guard_margin)
     return command * scale

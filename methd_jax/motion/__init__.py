@@ -12,12 +12,11 @@ Command line: ``python -m methd_jax.motion synth|stats|convert`` (``--help`` for
 
 from methd_jax.motion.bags import convert, load, save
 from methd_jax.motion.dataset import default_dataset, sample, split
-from methd_jax.motion.features import CONTROL_HZ, HipConfig, MotionBank, user_features
+from methd_jax.motion.features import HipConfig, MotionBank, user_features
 from methd_jax.motion.synth import SynthConfig, synthesize
 from methd_jax.motion.trajectory import MotionDataError, TrackingGlitchWarning, Trajectory
 
 __all__ = [
-    "CONTROL_HZ",
     "HipConfig",
     "MotionBank",
     "MotionDataError",

@@ -19,10 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from methd_jax.control import CONTROL_HZ
 from methd_jax.motion.trajectory import RATE_HZ, Trajectory, gaussian_smooth, yaw_from_quat
-
-CONTROL_HZ = 50.0
-"""Rate of the environments and of the features (thesis §4.3.2)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from methd_jax.motion.features import CONTROL_HZ, user_features
+from methd_jax.control import CONTROL_HZ
+from methd_jax.motion.features import user_features
 from methd_jax.motion.trajectory import GLITCH_SPEED, Trajectory
 
 
