@@ -10,7 +10,7 @@ from brax.training.agents.ppo import train as ppo
 
 import envs
 from methd_jax import motion
-from train import brax_peer
+from train.bench import brax_peer
 
 
 @pytest.fixture

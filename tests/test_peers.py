@@ -1,4 +1,4 @@
-"""The benchmark's peers (``train.brax_peer``, ``train.skrl_peer``) are set up the way their own
+"""The benchmark's peers (``train.bench.brax_peer``, ``train.bench.skrl_peer``) are set up the way their own
 outputs will look, so each compiles its pieces once: a second compile would be charged to the
 peer's compile time in ``train.bench`` and lengthen ``--quick``."""
 
@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from brax.training.agents.ppo import train as brax_ppo
 
-from train import brax_peer, skrl_peer
+from train.bench import brax_peer, skrl_peer
 from train.ppo import PPOConfig
 from train.presets import apply_overrides, preset
 from train.run import build

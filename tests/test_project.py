@@ -129,7 +129,7 @@ def test_bench_checks_fail_when_a_peer_is_faster():
 def test_without_skrl_the_benchmark_names_it_and_checks_brax(monkeypatch):
     import importlib.util
 
-    from train import skrl_peer
+    from train.bench import skrl_peer
 
     real = importlib.util.find_spec
     monkeypatch.setattr(

@@ -16,7 +16,7 @@ Sections (each timed in this one process, on whatever JAX device is default):
   allocator's ``peak_bytes_in_use``), over the whole run.
 * ``train``: PPO iterations of the ``su`` preset (Table 4.4: 48 rollouts, 5 epochs x 8 minibatches,
   the 702k-parameter network; ``--quick``: the ``quick`` preset's) at ``--train-envs`` environments,
-  ours against Brax's PPO trainer (``train.brax_peer``) and skrl's JAX PPO (``train.skrl_peer``,
+  ours against Brax's PPO trainer (``train.bench.brax_peer``) and skrl's JAX PPO (``train.bench.skrl_peer``,
   the thesis's trainer library), each on the same environment, network and batch shape:
   transitions per second with the updates included, the figure the thesis's Isaac Lab setup
   reached at about 76,000/s (RTX 4090).
@@ -37,7 +37,6 @@ import os
 import platform
 import resource
 import statistics
-import sys
 import time
 from collections.abc import Callable
 
@@ -298,13 +297,13 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     compile time. Our calls are interleaved with the peers' (one after each Brax epoch, from
     Brax's progress callback, which its own timing leaves out, and one after each skrl
     iteration), so a burst of load from elsewhere on a shared machine slows both sides of a ratio
-    alike instead of whichever happened to run then. Each compiles once: ``train.brax_peer`` and
-    ``train.skrl_peer`` hand the peers their state laid out as their own outputs will be (before
+    alike instead of whichever happened to run then. Each compiles once: ``train.bench.brax_peer`` and
+    ``train.bench.skrl_peer`` hand the peers their state laid out as their own outputs will be (before
     that, Brax's first epoch and skrl's environment step and models compiled twice, ~15 s and
     ~10 s more on 2 CPU cores). Transitions/s include the updates."""
     from brax.training.agents.ppo import train as brax_ppo
 
-    from train import brax_peer, skrl_peer
+    from train.bench import brax_peer, skrl_peer
     from train.presets import apply_overrides, preset
     from train.run import build
 
@@ -613,7 +612,3 @@ def checks(results: dict) -> list[str]:
         if ratio is not None and ratio < 1.0:
             out.append(f"our PPO is slower than {name} at {train['envs']} environments ({ratio:.2f}x)")
     return out
-
-
-if __name__ == "__main__":
-    sys.exit(main())
