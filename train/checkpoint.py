@@ -3,8 +3,11 @@
 The environments' state is saved with the parameters, optimiser state, normaliser statistics,
 iteration and key, so a resumed run continues exactly where it stopped (bit-identical on CPU).
 Orbax saves neither typed PRNG keys nor empty arrays (MJX keeps a few, such as ``act`` of a model
-without actuator states), so the state is saved as a flat dict of its non-empty leaves, keys as
-their raw data, and rebuilt from a state of the same structure on restore.
+without actuator states), so the state is saved as a nested dict of its non-empty leaves keyed by
+their path in the state (``params/params/body_0/kernel``, ``env_state/pipeline_state/robot/qpos``),
+keys as their raw data, and rebuilt from a state of the same structure on restore. Checkpoints
+written before 2026-11-28 keyed the leaves by their index in the flattened state; they still
+restore.
 """
 
 from __future__ import annotations
@@ -19,9 +22,47 @@ def _is_key(x) -> bool:
     return hasattr(x, "dtype") and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
-def _flat(tree) -> dict:
+def _saved(x):
+    return jax.random.key_data(x) if _is_key(x) else x
+
+
+def _name(entry) -> str:
+    for attr in ("name", "key", "idx"):  # GetAttrKey, DictKey, SequenceKey / FlattenedIndexKey
+        if hasattr(entry, attr):
+            return str(getattr(entry, attr))
+    raise TypeError(f"unexpected pytree path entry {entry!r}")
+
+
+def _by_path(tree) -> dict:
+    """The non-empty leaves of ``tree`` in nested dicts, one level per step of their path."""
+    out: dict = {}
+    for path, x in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        if not x.size:
+            continue
+        names = [_name(e) for e in path]
+        node = out
+        for n in names[:-1]:
+            node = node.setdefault(n, {})
+        node[names[-1]] = _saved(x)
+    return out
+
+
+def _by_index(tree) -> dict:
+    """The layout of checkpoints written before 2026-11-28: leaves keyed by their flat index."""
     leaves = jax.tree.leaves(tree)
-    return {f"{i:05d}": jax.random.key_data(x) if _is_key(x) else x for i, x in enumerate(leaves) if x.size}
+    return {f"{i:05d}": _saved(x) for i, x in enumerate(leaves) if x.size}
+
+
+def _rebuilt(like, lookup):
+    """``like`` with each non-empty leaf replaced by ``lookup(path, index)`` (keys re-wrapped)."""
+    flat, treedef = jax.tree_util.tree_flatten_with_path(like)
+    leaves = []
+    for i, (path, x) in enumerate(flat):
+        if x.size:
+            r = lookup([_name(e) for e in path], i)
+            x = jax.random.wrap_key_data(r, impl=jax.random.key_impl(x)) if _is_key(x) else r
+        leaves.append(x)
+    return jax.tree.unflatten(treedef, leaves)
 
 
 class CheckpointError(ValueError):
@@ -36,10 +77,11 @@ class Checkpoints:
         self._manager = ocp.CheckpointManager(
             self.directory,
             options=ocp.CheckpointManagerOptions(max_to_keep=keep, enable_async_checkpointing=False),
+            item_handlers=ocp.StandardCheckpointHandler(),  # so a fresh manager reads a step's layout
         )
 
     def save(self, step: int, state) -> None:
-        self._manager.save(step, args=ocp.args.StandardSave(_flat(state)), force=True)
+        self._manager.save(step, args=ocp.args.StandardSave(_by_path(state)), force=True)
         self._manager.wait_until_finished()
 
     def latest(self) -> int | None:
@@ -50,13 +92,19 @@ class Checkpoints:
         step = self.latest() if step is None else step
         if step is None:
             raise FileNotFoundError(f"no checkpoint in {self.directory}")
-        raw = self._manager.restore(step, args=ocp.args.StandardRestore(_flat(like)))
-        leaves, treedef = jax.tree.flatten(like)
-        for i, x in enumerate(leaves):
-            if x.size:
-                r = raw[f"{i:05d}"]
-                leaves[i] = jax.random.wrap_key_data(r, impl=jax.random.key_impl(x)) if _is_key(x) else r
-        return jax.tree.unflatten(treedef, leaves)
+        saved = self._manager.item_metadata(step)
+        if saved is not None and all(len(k) == 5 and k.isdigit() for k in saved):
+            raw = self._manager.restore(step, args=ocp.args.StandardRestore(_by_index(like)))
+            return _rebuilt(like, lambda path, i: raw[f"{i:05d}"])
+
+        def at(path, i):
+            node = raw
+            for n in path:
+                node = node[n]
+            return node
+
+        raw = self._manager.restore(step, args=ocp.args.StandardRestore(_by_path(like)))
+        return _rebuilt(like, at)
 
     def restore_intact(self, like, log=lambda *a: None):
         """``(state, step)`` of the newest checkpoint that restores into ``like``; older ones are
