@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import flax.linen as nn
 import jax
@@ -60,6 +61,15 @@ def _conv1d_bwd(stride, residuals, g):
 
 
 conv1d.defvjp(_conv1d_fwd, _conv1d_bwd)
+
+
+class Outputs(NamedTuple):
+    """What the actor-critics return, by name: PPO, export, the benchmark's peers and the tests read
+    these fields rather than positions."""
+
+    mean: jax.Array  # (..., A) the Gaussian's mean; the deterministic action is clip(mean, -1, 1)
+    log_std: jax.Array  # (..., A) its log standard deviation
+    value: jax.Array  # (...,) the critic's value estimate
 
 
 class Conv1D(nn.Module):
@@ -121,7 +131,7 @@ class ActorCritic(nn.Module):
         mean = nn.Dense(self.action_size, name="policy")(x)
         log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (self.action_size,))
         value = nn.Dense(1, name="value")(x)[..., 0]
-        return mean, jnp.broadcast_to(log_std, mean.shape), value
+        return Outputs(mean, jnp.broadcast_to(log_std, mean.shape), value)
 
 
 def transfer_inputs(
@@ -191,7 +201,7 @@ class GuideActorCritic(nn.Module):
         x = obs
         for i, h in enumerate(self.hidden):
             x = nn.elu(nn.Dense(h, name=f"critic{i}")(x))
-        return mean, log_std, nn.Dense(1, name="value")(x)[..., 0]
+        return Outputs(mean, log_std, nn.Dense(1, name="value")(x)[..., 0])
 
 
 def count(params) -> int:

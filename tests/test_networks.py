@@ -79,3 +79,28 @@ def test_from_spec_rebuilds_the_module():
     assert params["params"]["body0"]["kernel"].shape == (64 + 25, 16)
     with pytest.raises(ValueError, match="unknown network class"):
         networks.from_spec({"class": "Transformer"})
+
+
+@pytest.mark.parametrize(
+    "net, size", [(networks.GuideActorCritic(), 15), (networks.ActorCritic(num_rays=90), 115)]
+)
+def test_outputs_are_named(net, size):
+    obs = jax.random.normal(jax.random.key(1), (3, size))
+    out = net.apply(net.init(jax.random.key(0), obs), obs)
+    assert isinstance(out, networks.Outputs)
+    assert out.mean.shape == out.log_std.shape == (3, 1 if size == 15 else 3) and out.value.shape == (3,)
+    assert out.mean is out[0] and out.value is out[2]
+
+
+def test_the_normaliser_is_the_same_line_in_numpy_and_jax():
+    from methd_jax.normalise import normalise
+
+    rng = np.random.default_rng(0)
+    x, mean, std = rng.normal(size=(4, 6)) * 9, rng.normal(size=6), rng.uniform(0.5, 2, size=6)
+    want = np.clip((x - mean) / std, -5.0, 5.0)
+    got_np = normalise(x, mean, std, 5.0)
+    got_jax = jax.jit(lambda a: normalise(a, jnp.asarray(mean), jnp.asarray(std), 5.0))(jnp.asarray(x))
+    assert isinstance(got_np, np.ndarray) and np.abs(got_np).max() == 5.0
+    np.testing.assert_allclose(got_np, want)
+    np.testing.assert_allclose(got_jax, want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(normalise(x, mean, std, 0.0), (x - mean) / std)  # clip 0: unclipped

@@ -40,6 +40,7 @@ from methd_jax.cli import OneLineParser
 from methd_jax.control import CONTROL_HZ
 from methd_jax.deploy.policy import params_sha256
 from methd_jax.geometry import KAIROS
+from methd_jax.normalise import normalise
 
 FORMAT = "methd-jax-policy/1"
 
@@ -124,11 +125,8 @@ class Policy:
         return networks.from_spec(self.manifest["network"])
 
     def __call__(self, obs: jax.Array) -> jax.Array:
-        clip = self.manifest["observation_clip"]
-        z = (obs - self.obs_mean) / self.obs_std
-        z = jnp.clip(z, -clip, clip) if clip > 0 else z
-        mean, _, _ = self.network.apply(self.params, z)
-        return jnp.clip(mean, -1.0, 1.0)
+        z = normalise(obs, self.obs_mean, self.obs_std, self.manifest["observation_clip"])
+        return jnp.clip(self.network.apply(self.params, z).mean, -1.0, 1.0)
 
 
 def load(path: str | Path) -> Policy:

@@ -42,6 +42,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from envs.wrappers import AutoReset
+from methd_jax.normalise import normalise
 
 LOG_STD_RANGE = (-20.0, 2.0)
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
@@ -131,8 +132,7 @@ class RunningStats:
         return jnp.sqrt(self.var + 1e-8)
 
     def normalize(self, x: jax.Array, clip: float = 0.0) -> jax.Array:
-        z = (x - self.mean) / self.std
-        return jnp.clip(z, -clip, clip) if clip > 0 else z
+        return normalise(x, self.mean, self.std, clip)
 
     def denormalize(self, z: jax.Array) -> jax.Array:
         return z * self.std + self.mean

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from methd_jax.normalise import normalise
+
 FORMAT = "methd-jax-policy/1"
 
 
@@ -142,9 +144,7 @@ class NumpyPolicy:
         obs = np.asarray(obs, np.float32)
         single = obs.ndim == 1
         x = obs[None] if single else obs
-        z = (x - self.p["obs_mean"]) / self.p["obs_std"]
-        if self.clip > 0:
-            z = np.clip(z, -self.clip, self.clip)
+        z = normalise(x, self.p["obs_mean"], self.p["obs_std"], self.clip)
         if self.spec["class"] == "GuideActorCritic":
             h = z
             for i in range(len(self.spec["hidden"])):

@@ -65,7 +65,7 @@ def network_factory(spec: dict):
             return jnp.concatenate([mean, log_std], -1)
 
         def value(processor_params, params, obs):
-            return module.apply(params, preprocess_observations_fn(obs, processor_params))[2]
+            return module.apply(params, preprocess_observations_fn(obs, processor_params)).value
 
         init = lambda key: module.init(key, dummy)  # noqa: E731
         return ppo_networks.PPONetworks(

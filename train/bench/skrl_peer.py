@@ -67,8 +67,8 @@ def _models(spec: dict, observation_space, action_space, device):
 
         @nn.compact
         def __call__(self, inputs, role):
-            mean, log_std = networks.from_spec(spec)(inputs["observations"])[:2]
-            return mean, {"log_std": log_std}
+            out = networks.from_spec(spec)(inputs["observations"])
+            return out.mean, {"log_std": out.log_std}
 
     class Value(DeterministicMixin, Model):
         def __init__(self, **kwargs):
