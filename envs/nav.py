@@ -48,6 +48,7 @@ from envs.goals import goal_from_weight
 from methd_jax import floors, lidar, motion
 from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT, CONTROL_HZ
+from methd_jax.distances import USER_RADIUS
 from methd_jax.floors import Floor, FloorConfig
 from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
 from methd_jax.motion.features import HipConfig, MotionBank
@@ -121,7 +122,7 @@ class NavConfig:
     furniture or a wall does not pull the robot into it (the thesis's goal is the raw HIP: 0), m."""
     users_visible: bool = False
     """Users appear to the LiDAR as leg-height cylinders (the thesis's LiDAR could not see them)."""
-    user_radius: float = 0.25
+    user_radius: float = USER_RADIUS
     """Radius of those cylinders, m."""
     randomize_dynamics: bool = False
     """Draw the base's mass and servo limits per episode."""

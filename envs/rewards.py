@@ -13,14 +13,16 @@ import math
 import jax
 import jax.numpy as jnp
 
+from methd_jax.distances import COLLISION_DISTANCE, CRITICAL_DISTANCE
+
 
 @dataclasses.dataclass(frozen=True)
 class SafetyConfig:
     """Distances of thesis §4.2.1 and Table 4.1."""
 
-    collision_distance: float = 1.37
+    collision_distance: float = COLLISION_DISTANCE
     """d_coll: robot radius 0.77 m + 0.6 m, m."""
-    critical_distance: float = 1.77
+    critical_distance: float = CRITICAL_DISTANCE
     """d_crit, m."""
     inflation_distance: float = 0.5
     """d_i: width of the obstacle inflation layer beyond the robot's boundary, m."""

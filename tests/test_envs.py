@@ -517,3 +517,20 @@ def test_the_control_period_is_one_constant_not_a_setting():
     assert "control_dt" not in {f.name for f in dataclasses.fields(robot_lib.RobotConfig())}
     with pytest.raises(ConfigError, match="control_dt"):
         apply_overrides(preset("su"), ["env.robot.control_dt=0.015"])
+
+
+def test_the_distances_around_users_have_one_home():
+    """d_coll, d_crit and a user's radius come from methd_jax.distances in every config."""
+    from methd_jax import distances
+    from methd_jax.evaluation.engine import EngineConfig
+    from methd_jax.geometry import KAIROS
+    from methd_jax.viz import Rollout
+
+    assert distances.COLLISION_DISTANCE == pytest.approx(KAIROS.radius + 0.6)  # the base's radius + 0.6 m
+    safety = envs.rewards.SafetyConfig()
+    assert (safety.collision_distance, safety.critical_distance) == (1.37, 1.77)
+    assert safety.critical_distance == distances.CRITICAL_DISTANCE == EngineConfig().critical_distance
+    assert NavConfig().user_radius == EngineConfig().user_radius == distances.USER_RADIUS
+    rollout = {f.name: f.default for f in dataclasses.fields(Rollout)}
+    assert rollout["collision_distance"] == distances.COLLISION_DISTANCE
+    assert rollout["critical_distance"] == distances.CRITICAL_DISTANCE

@@ -36,6 +36,7 @@ from mujoco import mjx
 from methd_jax import floors, lidar
 from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT, CONTROL_HZ
+from methd_jax.distances import CRITICAL_DISTANCE, USER_RADIUS
 from methd_jax.evaluation import navigator as nav
 from methd_jax.evaluation.methods import Chase, Context
 from methd_jax.floors import Floor
@@ -78,9 +79,9 @@ class EngineConfig:
     """The navigator replans (around the users' current positions) this often, s."""
     user_keepout: float = 1.6
     """Around each user the navigator's plans keep this clear (Escape's 1.5 m plus 0.1 m), m."""
-    user_radius: float = 0.25
+    user_radius: float = USER_RADIUS
     """A user's body, for collisions with the robot's footprint, m."""
-    critical_distance: float = 1.77
+    critical_distance: float = CRITICAL_DISTANCE
     """d_crit of the thesis: time within it is reported as discomfort, m."""
     collision_rays: int = 720
     """Rays of the footprint-vs-obstacle collision test (as in training's p_o)."""

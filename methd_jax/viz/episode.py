@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 
+from methd_jax.distances import COLLISION_DISTANCE, CRITICAL_DISTANCE
 from methd_jax.floors import Floor
 from methd_jax.geometry import KAIROS
 
@@ -39,8 +40,8 @@ class Rollout:
     ranges: np.ndarray | None = None  # (T, R) LiDAR ranges in the observation (noisy, clamped)
     lidar_range: float = 3.0  # the clamp of ``ranges``, m
     u_w: np.ndarray | None = None  # (T,) user weight (nav with two users, guide)
-    collision_distance: float = 1.37  # d_coll around users, m
-    critical_distance: float = 1.77  # d_crit around users, m
+    collision_distance: float = COLLISION_DISTANCE  # d_coll around users, m
+    critical_distance: float = CRITICAL_DISTANCE  # d_crit around users, m
     footprint: tuple[float, float] = (KAIROS.length, KAIROS.width)
 
     @property
