@@ -10,6 +10,7 @@ import jax
 import pytest
 
 from train import bench
+from train import run as run_lib
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -267,3 +268,15 @@ def test_imports_flow_one_way(package, forbidden):
         for path in sorted((ROOT / package).rglob("*.py"))
     }
     assert {k: v for k, v in offenders.items() if v} == {}
+
+
+@pytest.mark.slow
+def test_loop_section_compares_the_two_call_shapes():
+    logged = []
+    row = bench.bench_loop(8, 1, logged.append)
+    assert row["iterations_per_call"] == run_lib.CHUNK and row["envs"] == 8
+    assert row["ratio"] == pytest.approx(
+        row["chunked_donated_transitions_per_s"] / row["per_iteration_calls_transitions_per_s"]
+    )
+    assert min(row["chunked_donated_transitions_per_s"], row["per_iteration_calls_transitions_per_s"]) > 0
+    assert "donated" in logged[0]

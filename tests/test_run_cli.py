@@ -10,7 +10,7 @@ from conftest import TINY_RUN
 
 from train import export
 from train.presets import PRESETS, ConfigError
-from train.run import main
+from train.run import CHUNK, main
 
 TINY = [*TINY_RUN, "timesteps=8"]
 
@@ -117,14 +117,15 @@ def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
 def test_max_minutes_ends_early_with_a_checkpoint_and_the_export(tmp_path, capsys):
     run = tmp_path / "run"
     args = ["quick", *TINY, "timesteps=400", "--out", str(run), "--quiet"]
-    assert main([*args, "--max-minutes", "1e-6"]) == 0  # out of time after the first iteration
+    assert main([*args, "--max-minutes", "1e-6"]) == 0  # out of time after the first call
     rows = (run / "metrics.jsonl").read_text().splitlines()
-    assert len(rows) == 1 and (run / "checkpoints" / "1").is_dir()
-    assert export.load(run).manifest["trained"]["iteration"] == 1
+    assert len(rows) == CHUNK and (run / "checkpoints" / str(CHUNK)).is_dir()
+    assert export.load(run).manifest["trained"]["iteration"] == CHUNK
     metrics = run / "metrics.jsonl"
-    metrics.write_text(metrics.read_text() + '{"iteration": 2, "loss/pol')  # killed mid-append
-    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 0  # continues by one
-    assert [json.loads(r)["iteration"] for r in metrics.read_text().splitlines()] == [1, 2]
+    metrics.write_text(metrics.read_text() + f'{{"iteration": {CHUNK + 1}, "loss/pol')  # killed mid-append
+    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 0  # continues by a call
+    iterations = [json.loads(r)["iteration"] for r in metrics.read_text().splitlines()]
+    assert iterations == list(range(1, 2 * CHUNK + 1))
     # a metrics file that is not this run's is refused before anything is written
     config = (run / "config.json").read_text()
     metrics.write_text('{"epoch": 3}\n{"epoch": 4}\n')

@@ -400,6 +400,18 @@ class Trainer:
         """``iterations`` updates under one ``lax.scan``; metrics stacked along the first axis."""
         return jax.lax.scan(lambda s, _: self.update(s), state, None, iterations)
 
+    def run_upto(self, state: TrainState, count: jax.Array, size: int):
+        """The first ``count`` (traced, at most ``size``) of ``size`` scanned steps update the state,
+        the rest pass it through: any number of iterations up to ``size`` in one compiled call.
+        Metrics are stacked along the first axis; rows from ``count`` on are zeros."""
+        shapes = jax.eval_shape(self.update, state)[1]
+        idle = {k: jnp.zeros(v.shape, v.dtype) for k, v in shapes.items()}
+
+        def step(s, i):
+            return jax.lax.cond(i < count, self.update, lambda s: (s, idle), s)
+
+        return jax.lax.scan(step, state, jnp.arange(size))
+
     def train(self, key: jax.Array, iterations: int):
         """Pure: ``init`` then ``iterations`` updates. ``jax.vmap`` it over keys for several seeds."""
         return self.run(self.init(key), iterations)

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import envs
@@ -31,6 +32,9 @@ from train import distributed, export
 from train.checkpoint import CheckpointError, Checkpoints
 from train.ppo import Trainer
 from train.presets import PRESETS, ConfigError, RunConfig, apply_overrides, options, preset
+
+CHUNK = 8
+"""Iterations per compiled call of the run loop (fewer where a checkpoint or the end comes first)."""
 
 THESIS_POLICY_PARAMETERS = {"su": 702_674, "nav": 706_770, "guide": 18_690}
 
@@ -278,7 +282,8 @@ def train(
 
     ``stop_after``: leave after this many iterations in total (for tests of interrupted runs); the
     checkpoint schedule is unchanged. ``max_minutes``: end early, with a checkpoint and the export,
-    after the first iteration that finishes past this much wall time (``--resume`` continues).
+    after the first call (:data:`CHUNK` iterations or fewer) that finishes past this much wall time
+    (``--resume`` continues).
     Returns the run's summary. Raises :class:`NonFiniteError`.
     """
     from tensorboardX import SummaryWriter
@@ -305,7 +310,9 @@ def train(
 
     log = (lambda *a: tqdm.write(" ".join(map(str, a)), file=sys.stderr)) if progress else (lambda *a: None)
     init = jax.jit(trainer.init)
-    update = jax.jit(trainer.update)
+    # CHUNK iterations per compiled call, the state's buffers donated to the next: one dispatch and
+    # one host round trip per chunk instead of per iteration
+    run_chunk = jax.jit(trainer.run_upto, static_argnums=2, donate_argnums=0)
     state = init(jax.random.key(config.seed))
     ckpts = Checkpoints(run_dir / "checkpoints")
     start = 0
@@ -343,51 +350,42 @@ def train(
         file=sys.stderr,
     )
     t_begin, timed, timed_s = time.perf_counter(), 0, 0.0
-    episodes = {"return": "-", "len": "-"}
+    post = {"return": "-", "len": "-"}
     last_saved = ckpts.latest()
     try:
-        for it in range(start, end):
+        it = start
+        while it < end:
+            # a chunk never crosses a checkpoint, so the schedule is the same whatever CHUNK is
+            count = min(CHUNK, end - it, config.checkpoint_every - it % config.checkpoint_every)
             t0 = time.perf_counter()
-            new_state, m = update(state)
-            m = {k: float(v) for k, v in jax.device_get(m).items()}
-            dt = time.perf_counter() - t0
-            if not m.pop("finite"):
-                where = (
-                    f"iteration {last_saved} in {ckpts.directory}" if last_saved is not None else "none yet"
-                )
-                raise NonFiniteError(
-                    f"non-finite loss or parameters at iteration {it + 1}; stopped. Last good checkpoint: "
-                    + where
-                )
-            state = new_state
-            if it > start:  # the first iteration of a process includes compilation
-                timed, timed_s = timed + 1, timed_s + dt
-            row = {"iteration": it + 1, "transitions": (it + 1) * per, "seconds": dt, **m}
-            if primary:
-                with (run_dir / "metrics.jsonl").open("a") as f:
-                    f.write(json.dumps(row) + "\n")
-            rows.append(row)
-            for k, v in m.items():
-                if k.startswith("episode/") and m["episode/count"] == 0:
-                    continue
-                writer.add_scalar(k, v, row["transitions"])
-            writer.add_scalar("perf/transitions_per_s", per / dt, row["transitions"])
-            if m["episode/count"] > 0:
-                episodes = {"return": f"{m['episode/return']:.1f}", "len": f"{m['episode/length'] / 50:.1f}s"}
-            post = dict(episodes)
-            if "guide/accuracy" in m:
-                post["acc"] = f"{100 * m['guide/accuracy']:.0f}%"
+            state, stacked = run_chunk(state, jnp.int32(count), CHUNK)
+            stacked = jax.device_get(stacked)
+            dt = (time.perf_counter() - t0) / count
+            for j in range(count):
+                m = {k: float(v[j]) for k, v in stacked.items()}
+                if not m.pop("finite"):
+                    where = f"iteration {last_saved} in {ckpts.directory}" if last_saved else "none yet"
+                    raise NonFiniteError(
+                        f"non-finite loss or parameters at iteration {it + j + 1}; stopped. "
+                        f"Last good checkpoint: {where}"
+                    )
+                row = {"iteration": it + j + 1, "transitions": (it + j + 1) * per, "seconds": dt, **m}
+                _record(row, m, rows, writer, run_dir if primary else None, per)
+                post = _postfix(m, post)
+            if it > start:  # the first call of a process includes compilation
+                timed, timed_s = timed + count, timed_s + dt * count
+            it += count
             bar.set_postfix(post, refresh=False)
-            bar.update(per)
+            bar.update(per * count)
             out_of_time = max_minutes is not None and time.perf_counter() - t_begin >= 60 * max_minutes
             out_of_time = distributed.agree(out_of_time)  # every process saves the same checkpoints
-            if (it + 1) % config.checkpoint_every == 0 or it + 1 == config.iterations or out_of_time:
-                ckpts.save(it + 1, state)
-                last_saved = it + 1
+            if it % config.checkpoint_every == 0 or it == config.iterations or out_of_time:
+                ckpts.save(it, state)
+                last_saved = it
                 if primary:
                     _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
             if out_of_time:
-                log(f"stopping after iteration {it + 1}: the {max_minutes:g}-minute budget is spent")
+                log(f"stopping after iteration {it}: the {max_minutes:g}-minute budget is spent")
                 break
     finally:
         bar.close()
@@ -417,6 +415,29 @@ def train(
     distributed.barrier("run folder written")
     log(f"wrote {run_dir} ({meta['transitions_per_s']:,.0f} transitions/s)")
     return {**meta, "rows": rows, "state": state}
+
+
+def _record(row: dict, m: dict, rows: list, writer, run_dir: Path | None, per: int) -> None:
+    """One iteration's metrics into ``metrics.jsonl`` (when ``run_dir``), ``rows`` and TensorBoard."""
+    if run_dir is not None:
+        with (run_dir / "metrics.jsonl").open("a") as f:
+            f.write(json.dumps(row) + "\n")
+    rows.append(row)
+    for k, v in m.items():
+        if k.startswith("episode/") and m["episode/count"] == 0:
+            continue
+        writer.add_scalar(k, v, row["transitions"])
+    writer.add_scalar("perf/transitions_per_s", per / row["seconds"], row["transitions"])
+
+
+def _postfix(m: dict, last: dict) -> dict:
+    """The progress bar's text: the newest episode return and length, GuideRL's accuracy."""
+    post = dict(last)
+    if m["episode/count"] > 0:
+        post |= {"return": f"{m['episode/return']:.1f}", "len": f"{m['episode/length'] / 50:.1f}s"}
+    if "guide/accuracy" in m:
+        post["acc"] = f"{100 * m['guide/accuracy']:.0f}%"
+    return post
 
 
 class _NoWriter:

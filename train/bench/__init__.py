@@ -402,6 +402,56 @@ def bench_train(num_envs: int, iterations: int, repeats: int, log, preset_name: 
     return row
 
 
+def bench_loop(num_envs: int, repeats: int, log, preset_name: str = "quick") -> dict:
+    """The run loop's call shape: ``train.run.CHUNK`` iterations as that many jitted
+    ``Trainer.update`` calls (the loop before 2026-11-28) against one ``Trainer.run_upto`` call
+    with the state donated (the loop now), interleaved, median of ``repeats`` each, metrics
+    fetched to the host after each call as the loop does."""
+    from train.presets import apply_overrides, preset
+    from train.run import CHUNK, build
+
+    config = apply_overrides(preset(preset_name), ["env.motion=sample", f"num_envs={num_envs}"])
+    trainer = build(config).trainer
+    update = jax.jit(trainer.update)
+    chunk = jax.jit(trainer.run_upto, static_argnums=2, donate_argnums=0)
+    state = {"calls": jax.jit(trainer.init)(jax.random.key(0))}
+    state["chunk"] = jax.jit(trainer.init)(jax.random.key(0))
+
+    def per_call():
+        s = state["calls"]
+        for _ in range(CHUNK):
+            s, m = update(s)
+            jax.device_get(m)
+        state["calls"] = s
+
+    def one_chunk():
+        state["chunk"], m = chunk(state["chunk"], jnp.int32(CHUNK), CHUNK)
+        jax.device_get(m)
+
+    times: dict[str, list[float]] = {"calls": [], "chunk": []}
+    per_call(), one_chunk()  # compile
+    for _ in range(repeats):
+        for name, fn in (("calls", per_call), ("chunk", one_chunk)):
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    per = trainer.transitions_per_iteration * CHUNK
+    row = {
+        "preset": preset_name,
+        "envs": num_envs,
+        "iterations_per_call": CHUNK,
+        "per_iteration_calls_transitions_per_s": per / statistics.median(times["calls"]),
+        "chunked_donated_transitions_per_s": per / statistics.median(times["chunk"]),
+    }
+    row["ratio"] = row["chunked_donated_transitions_per_s"] / row["per_iteration_calls_transitions_per_s"]
+    log(
+        f"  loop  {preset_name:>5} {num_envs:>6} envs: {CHUNK} calls of one iteration "
+        f"{row['per_iteration_calls_transitions_per_s']:>9,.0f} transitions/s   one call of {CHUNK}, donated "
+        f"{row['chunked_donated_transitions_per_s']:>9,.0f} ({row['ratio']:.2f}x)"
+    )
+    return row
+
+
 def peak_device_memory_mb(devices=None) -> float | None:
     """The largest ``peak_bytes_in_use`` over the local devices since the process started, in MB;
     None where the backend keeps no allocator statistics (the CPU)."""
@@ -492,6 +542,8 @@ def main(argv: list[str] | None = None) -> int:
         log,
         "quick" if args.quick else "su",
     )
+    if not args.quick:
+        results["loop"] = bench_loop(256, min(repeats, 5), log)
     if args.scaling:
         results["scaling"] = bench_scaling([256, 1024, 4096, 16384], [8, 16, 32, 64], repeats, log)
         plot_scaling(results["scaling"], args.scaling)
