@@ -77,7 +77,7 @@ def _models(spec: dict, observation_space, action_space, device):
 
         @nn.compact
         def __call__(self, inputs, role):
-            return networks.from_spec(spec)(inputs["observations"])[2][..., None], {}
+            return networks.from_spec(spec)(inputs["observations"]).value[..., None], {}
 
     kw = {"observation_space": observation_space, "action_space": action_space}
     models = {"policy": Policy(**kw), "value": Value(**kw)}
