@@ -27,6 +27,7 @@ from methd_jax.deploy.controller import clamp_to_limits
 from methd_jax.deploy.mcap_replay import read_inputs
 from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig, arc
 from methd_jax.geometry import KAIROS
+from methd_jax.jsonable import jsonable
 from train import export, sample_bag
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -180,9 +181,10 @@ def _manifest_of(env) -> dict:
     layout = {k: [s.start, s.stop] for k, s in env.observation_layout.items()}
     return {
         "env": "su",
-        "env_config": export.jsonable(env.config),
+        "env_config": jsonable(env.config),
         "observation_layout": layout,
         "observation_clip": 5.0,
+        "network": {"class": "ActorCritic", "hidden": [8], "num_rays": env.config.num_rays},
     }
 
 
@@ -875,8 +877,8 @@ def test_the_replay_refuses_corrupt_bags_cleanly(coarse_deploy, tmp_path):
         assert summary["ticks"] >= 1 and out.exists()
         return "accepted"
 
-    counts = fuzz(target, original, seed=1)
-    assert counts["refused"] >= 3 and sum(counts.values()) >= 6, counts
+    counts = fuzz(target, original, seed=1, cases=16)
+    assert counts["refused"] >= 4 and counts["accepted"] >= 1, counts
 
 
 def test_the_deploy_loader_refuses_corrupt_folders_cleanly(coarse_deploy, tmp_path):
