@@ -19,6 +19,7 @@ import pytest
 from conftest import export_random_policy, fuzz
 
 import networks
+from envs import sample_bag
 from envs.nav import NavConfig, NavEnv
 from methd_jax import deploy, lidar, ros_messages
 from methd_jax import robot as robot_lib
@@ -28,7 +29,7 @@ from methd_jax.deploy.mcap_replay import read_inputs
 from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig, arc
 from methd_jax.geometry import KAIROS
 from methd_jax.jsonable import jsonable
-from train import export, sample_bag
+from train import export
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = ROOT / "assets" / "deploy_sample.mcap"
@@ -627,7 +628,7 @@ def test_replay_a_bag_with_a_scan_gap_reaches_the_watchdog(su_deploy, tmp_path):
 
 
 def test_sample_bag_is_what_the_recorder_makes():
-    """The shipped bag comes from `python -m train.sample_bag` (its documented command)."""
+    """The shipped bag comes from `python -m envs.sample_bag` (its documented command)."""
     scans = _read(SAMPLE_BAG, "/scan")
     odom = _read(SAMPLE_BAG, "/odom")
     assert len(scans) == len(odom) >= 250 and scans[0][2].ranges.__len__() == 720

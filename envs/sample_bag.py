@@ -1,6 +1,6 @@
 """A ROS 2 bag (MCAP) recorded from our simulator, for replaying the deployment shim offline.
 
-``python -m train.sample_bag --out assets/deploy_sample.mcap`` (the shipped sample): one ``su``
+``python -m envs.sample_bag --out assets/deploy_sample.mcap`` (the shipped sample): one ``su``
 episode on the lab twin with a user from the shipped motion sample; the base is driven to the HIP
 by the evaluation's navigator (the role of the ROS navigation stack: a wavefront plan around the
 obstacles and a 1.6 m keep-out around the user), not by a policy, so the bag shows collision-free
@@ -136,7 +136,7 @@ def write(
 
 
 def main(argv=None) -> int:
-    parser = OneLineParser(prog="python -m train.sample_bag", description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog="python -m envs.sample_bag", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="assets/deploy_sample.mcap")
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=1)
