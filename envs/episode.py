@@ -27,6 +27,34 @@ def zero_policy(action_size: int) -> Callable[[jax.Array], jax.Array]:
     return lambda obs: jnp.zeros(action_size)
 
 
+def trace(env, key: jax.Array, steps: int, policy: Callable[[jax.Array], jax.Array] | None = None) -> dict:
+    """``steps`` control steps of one episode of any environment of the task table, as numpy arrays
+    ``obs (steps + 1, D)``, ``action (steps, A)``, ``reward (steps,)``, ``done (steps,)`` (the state
+    freezes once the episode ends, so rows after the first ``done`` repeat it)."""
+    if steps < 1:
+        raise ValueError(f"steps must be at least 1, got {steps}")
+    policy = policy or zero_policy(env.action_size)
+
+    def body(state, _):
+        action = policy(state.obs)
+        nxt = env.step(state, action)
+        state = jax.tree.map(lambda old, new: jnp.where(state.done > 0, old, new), state, nxt)
+        return state, (state.obs, action, state.reward, state.done > 0)
+
+    @jax.jit
+    def run(key):
+        state = env.reset(key)
+        _, (obs, action, reward, done) = jax.lax.scan(body, state, None, length=steps)
+        return {
+            "obs": jnp.concatenate([state.obs[None], obs]),
+            "action": action,
+            "reward": reward,
+            "done": done,
+        }
+
+    return {k: np.asarray(v) for k, v in run(key).items()}
+
+
 def record(
     env: NavEnv | GuideEnv,
     key: jax.Array,

@@ -124,6 +124,10 @@ class GuideEnv(Env):
         return 1
 
     @property
+    def observation_layout(self) -> dict[str, slice]:
+        return {"guide": slice(0, self.observation_size)}
+
+    @property
     def backend(self) -> str:
         return "kinematic"
 

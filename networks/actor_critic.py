@@ -133,6 +133,24 @@ class ActorCritic(nn.Module):
         value = nn.Dense(1, name="value")(x)[..., 0]
         return Outputs(mean, jnp.broadcast_to(log_std, mean.shape), value)
 
+    def policy_layers(self) -> dict:
+        """The policy's forward pass as data, for runtimes outside JAX (``methd_jax.deploy``):
+        parameter paths as ``train.export`` writes them to ``params.npz``; ELU after every layer
+        but ``mean``."""
+        return {
+            "activation": "elu",
+            "encoder": {
+                "input": self.num_rays,
+                "conv": [
+                    {"params": f"params/encoder/conv{i}", "stride": s}
+                    for i, s in enumerate(self.encoder.strides)
+                ],
+                "project": "params/encoder/project",
+            },
+            "body": [f"params/body{i}" for i in range(len(self.hidden))],
+            "mean": "params/policy",
+        }
+
 
 def transfer_inputs(
     source: dict, target: dict, num_rays: int, source_fields: dict, target_fields: dict
@@ -202,6 +220,14 @@ class GuideActorCritic(nn.Module):
         for i, h in enumerate(self.hidden):
             x = nn.elu(nn.Dense(h, name=f"critic{i}")(x))
         return Outputs(mean, log_std, nn.Dense(1, name="value")(x)[..., 0])
+
+    def policy_layers(self) -> dict:
+        """The policy's forward pass as data (see :meth:`ActorCritic.policy_layers`)."""
+        return {
+            "activation": "elu",
+            "body": [f"params/actor/hidden{i}" for i in range(len(self.hidden))],
+            "mean": "params/actor/policy",
+        }
 
 
 def count(params) -> int:

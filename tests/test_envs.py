@@ -295,7 +295,7 @@ def test_nav_goal_sources(bank):
         uw.append(float(state.pipeline_state.u_w))
     assert max(np.abs(np.diff(uw))) <= 0.02 + 1e-6 and np.ptp(uw) > 0  # scripted: moves, rate-limited
     # a GuideRL policy that always pushes toward user 2 drives the goal to user 2's HIP
-    pushed = envs.make("nav", bank=bank, guide_policy=lambda obs: jnp.ones(1))
+    pushed = envs.make("nav", bank=bank, policies={"guide": lambda obs: jnp.ones(1)})
     state = jax.jit(pushed.reset)(jax.random.key(0))
     step = jax.jit(pushed.step)
     for _ in range(30):
@@ -304,7 +304,9 @@ def test_nav_goal_sources(bank):
     hip2 = np.asarray(bank.hip[w.users[1], w.t])
     assert float(w.u_w) == 1.0 and np.allclose(np.asarray(w.goal), hip2, atol=1e-5)
     with pytest.raises(ValueError, match="exactly 2 users"):
-        envs.make("su", bank=bank, guide_policy=lambda obs: obs)
+        envs.make("nav", bank=bank, num_users=1, policies={"guide": lambda obs: obs})
+    with pytest.raises(ValueError, match="task 'su' takes no guide policy"):
+        envs.make("su", bank=bank, policies={"guide": lambda obs: obs})
     three = envs.make("nav", bank=bank, num_users=3)  # N = 3: goal is one user's HIP, scripted
     s = jax.jit(lambda k: three.step(three.reset(k), jnp.zeros(3)))(jax.random.key(1))
     hips = np.asarray(jax.vmap(bank.at, (0, None))(s.pipeline_state.users, s.pipeline_state.t)["hip"])
@@ -408,14 +410,14 @@ def test_pair_accuracy_follows_u_w_from_the_trajectories_beginning_to_the_first_
 
 
 def test_make_rejects_bad_options(bank):
-    with pytest.raises(ValueError, match="unknown environment 'walk'"):
+    with pytest.raises(ValueError, match="unknown task 'walk'; choose one of su, nav, guide"):
         envs.make("walk")
     with pytest.raises(ValueError, match=r"su: unknown option\(s\) \['speed'\]"):
         envs.make("su", bank=bank, speed=3)
     with pytest.raises(ValueError, match="num_users"):
         envs.make("nav", bank=bank, num_users=0)
-    with pytest.raises(ValueError, match="guide_policy applies to 'nav' only"):
-        envs.make("guide", bank=bank, guide_policy=lambda o: o)
+    with pytest.raises(ValueError, match="task 'guide' takes no guide policy"):
+        envs.make("guide", bank=bank, policies={"guide": lambda o: o})
 
 
 def test_lab_floor_option(bank):

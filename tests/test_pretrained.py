@@ -10,7 +10,8 @@ import jax
 import numpy as np
 import pytest
 
-from envs.nav import NavConfig, NavEnv
+from envs import tasks
+from envs.nav import NavEnv
 from methd_jax import deploy, floors
 from methd_jax.deploy.safety import SafetyConfig
 from methd_jax.evaluation import methods, metrics
@@ -24,7 +25,7 @@ NAV = SU.parent / "nav"
 
 def test_deploy_controller_acts_as_the_jax_policy_on_recorded_observations():
     policy = export.load(SU)
-    config = export.from_jsonable(NavConfig(), policy.manifest["env_config"])
+    config = tasks.get(policy.manifest["env"]).config_from(policy.manifest["env_config"])
     bank = ev.load_bank("default", "test", ev.HipConfig()).take(range(8))  # users who walk in the lab
     env = NavEnv(dataclasses.replace(config, lab=True, lab_fraction=0.0), bank=bank)
     keys = jax.random.split(jax.random.key(4), 8)

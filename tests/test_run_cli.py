@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from conftest import TINY_RUN
 
+from methd_jax.jsonable import jsonable
 from train import export
 from train.presets import PRESETS, ConfigError
 from train.run import CHUNK, main
@@ -264,13 +265,13 @@ def test_a_run_resumes_with_the_configuration_it_stored(tmp_path):
     mine = dataclasses.replace(preset("guide"), num_envs=24, hidden=(7, 5), seed=11)
     folder = tmp_path / "custom"
     folder.mkdir()
-    meta = {"preset": "custom", "overrides": [], "config": export.jsonable(mine)}
+    meta = {"preset": "custom", "overrides": [], "config": jsonable(mine)}
     (folder / "config.json").write_text(json.dumps(meta))
     assert run_lib.load_config(folder) == ("custom", [], mine)
 
     quick = apply_overrides(preset("quick"), ["seed=3"])
     then = dataclasses.replace(quick, num_envs=64)  # what "quick" named when that run started
-    meta = {"preset": "quick", "overrides": ["seed=3"], "config": export.jsonable(then)}
+    meta = {"preset": "quick", "overrides": ["seed=3"], "config": jsonable(then)}
     (folder / "config.json").write_text(json.dumps(meta))
     assert run_lib.load_config(folder)[2] == then != quick
 

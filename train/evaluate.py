@@ -21,8 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs import guide as guide_env
+from envs import tasks
 from envs.evaluation import Policy
-from envs.nav import NavConfig, NavEnv, load_bank
+from envs.nav import load_bank
 from methd_jax import floors
 from methd_jax.cli import OneLineParser
 from methd_jax.control import CONTROL_HZ
@@ -53,19 +54,15 @@ def load_policy(
     """A trained policy from a run folder or an exported policy folder, as an evaluation method.
 
     ``kind`` is "su" (a single-user policy) or "nav" (NavRL; its GuideRL policy comes from ``guide``
-    or from the run's own ``guide_run``). ``safety``: with the deployment's safety layer."""
+    or from where the policy's manifest records it). ``safety``: with the deployment's safety layer."""
     want = {"su": "--su takes a single-user (su) run", "nav": "--mu takes a NavRL (nav) run"}[kind]
     policy = _load(run, kind, want)
-    config = export.from_jsonable(NavConfig(), policy.manifest["env_config"])
-    guide_policy = None
-    if kind == "nav":
-        guide = guide or guide_run_of(run)
-        if not guide:
-            raise ConfigError(
-                f"{run} was trained with the scripted goal source; pass its GuideRL run as --guide"
-            )
-        guide_policy = load_guide(guide)
-    env = NavEnv(config, bank=bank, guide_policy=guide_policy)
+    task = tasks.get(kind)
+    folders = _dependencies(run, {"guide": str(guide)} if guide and "guide" in task.depends else None)
+    for name in sorted(set(task.depends) - set(folders)):  # the MU procedure needs GuideRL's goal
+        raise ConfigError(f"{run} was trained without a {name} policy (scripted goals); pass one as --{name}")
+    policies = run_lib.load_dependencies(folders, str(run))
+    env = task.build(task.config_from(policy.manifest["env_config"]), bank=bank, policies=policies)
     return Policy(env, policy, name=SAFETY_ROW if safety else "DRL", safety=safety)
 
 
@@ -78,11 +75,11 @@ def procedural(
     the floors come from ``seed``'s keys, which training never draws (it splits its own seed's key).
     Returns the share of episodes that ended in each way and their count."""
     policy = _load(run, "su", "--procedural takes a su policy")
-    trained = export.from_jsonable(NavConfig(), policy.manifest["env_config"])
+    trained = tasks.get("su").config_from(policy.manifest["env_config"])
     config = dataclasses.replace(
         trained, lab=False, lab_fraction=0.0, split="test", floor=floor or trained.floor
     )
-    env = NavEnv(config)
+    env = tasks.get("su").build(config)
     steps = round(config.time_limit * CONTROL_HZ)
 
     outcomes = ("obstacle", "user", "success", "timeout")
@@ -110,15 +107,13 @@ def procedural(
     return out
 
 
-def guide_run_of(run: str | Path) -> str:
-    """The GuideRL run a NavRL run folder was trained with (its ``guide_run``), or ""."""
-    meta = Path(run) / "config.json"
-    if not meta.exists():
-        return ""
+def _dependencies(run: str | Path, given: dict[str, str] | None = None) -> dict[str, str]:
+    """The policies ``run`` was trained with, as its manifest records them unless ``given``
+    (:class:`ConfigError` when a recorded one is gone)."""
     try:
-        return run_lib.load_config(run)[2].guide_run
-    except ConfigError:
-        return ""
+        return export.dependencies(run, given)
+    except (FileNotFoundError, ValueError) as err:
+        raise ConfigError(str(err)) from None
 
 
 def evaluate(
@@ -351,7 +346,7 @@ def main(argv=None) -> int:
         if args.mu and args.no_mu:
             raise ConfigError("--mu and --no-mu contradict each other")
         mu_run = args.mu or (None if args.no_pretrained or args.no_mu else shipped("nav"))
-        guide = args.guide or (guide_run_of(args.mu) if args.mu else None)
+        guide = args.guide or (_dependencies(args.mu).get("guide") if args.mu else None)
         guide = guide or (None if args.no_pretrained else shipped("guide"))
         if guide:
             load_guide(guide)  # a bad --guide is refused before the long evaluation

@@ -36,52 +36,23 @@ import numpy as np
 from flax import traverse_util
 
 import networks
+from envs import tasks
 from methd_jax.cli import OneLineParser
 from methd_jax.control import CONTROL_HZ
 from methd_jax.deploy.policy import params_sha256
 from methd_jax.geometry import KAIROS
+from methd_jax.jsonable import jsonable
 from methd_jax.normalise import normalise
 
 FORMAT = "methd-jax-policy/1"
 
-ACTIONS = {
-    "su": {"names": ["vx", "vy", "wz"], "units": ["m/s", "m/s", "rad/s"], "frame": "robot"},
-    "nav": {"names": ["vx", "vy", "wz"], "units": ["m/s", "m/s", "rad/s"], "frame": "robot"},
-    "guide": {"names": ["delta_u_w"], "units": ["1"], "frame": "none"},
-}
 
-
-def jsonable(value):
-    """Dataclasses as dicts and tuples as lists, recursively (for JSON)."""
-    if dataclasses.is_dataclass(value):
-        return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, tuple | list):
-        return [jsonable(v) for v in value]
-    return value
-
-
-def from_jsonable(default, data: dict):
-    """The inverse of :func:`jsonable` for a dataclass: ``default`` with the fields in ``data``
-    (nested dataclasses and tuples rebuilt from dicts and lists)."""
-
-    def as_tuple(v):
-        return tuple(as_tuple(x) for x in v) if isinstance(v, list) else v
-
-    changes = {}
-    for f in dataclasses.fields(default):
-        if f.name not in data:
-            continue
-        current, value = getattr(default, f.name), data[f.name]
-        if dataclasses.is_dataclass(current):
-            value = from_jsonable(current, value)
-        elif isinstance(current, tuple):
-            value = as_tuple(value)
-        changes[f.name] = value
-    return dataclasses.replace(default, **changes)
-
-
-def export(path: str | Path, *, env_name, env, network_spec, params, obs_stats, obs_clip, trained) -> Path:
-    """Write ``params.npz`` and ``manifest.json`` into the folder ``path``; returns it."""
+def export(
+    path: str | Path, *, env_name, env, network_spec, params, obs_stats, obs_clip, trained, policies=None
+) -> Path:
+    """Write ``params.npz`` and ``manifest.json`` into the folder ``path``; returns it. ``policies``
+    (task name -> folder) records the policies the environment was trained with (GuideRL for
+    NavRL), as given: :func:`dependencies` finds them again."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     flat = traverse_util.flatten_dict(jax.device_get(params), sep="/")
@@ -89,12 +60,9 @@ def export(path: str | Path, *, env_name, env, network_spec, params, obs_stats, 
     arrays["obs_mean"] = np.asarray(obs_stats.mean, np.float32)
     arrays["obs_std"] = np.asarray(obs_stats.std, np.float32)
     np.savez(path / "params.npz", **arrays)
-    if env_name == "guide":
-        layout, scale = {"guide": [0, env.observation_size]}, [0.05]
-    else:
-        layout = {k: [s.start, s.stop] for k, s in env.observation_layout.items()}
-        robot = env.config.robot
-        scale = [robot.max_speed, robot.max_speed, robot.max_yaw_rate]
+    task = tasks.get(env_name)
+    layout = {k: [s.start, s.stop] for k, s in env.observation_layout.items()}
+    action = {k: list(v) if isinstance(v, tuple) else v for k, v in task.action.items()}
     manifest = {
         "format": FORMAT,
         "env": env_name,
@@ -102,10 +70,16 @@ def export(path: str | Path, *, env_name, env, network_spec, params, obs_stats, 
         "observation_size": env.observation_size,
         "observation_layout": layout,
         "observation_clip": obs_clip,
-        "action": {**ACTIONS[env_name], "size": env.action_size, "scale": scale, "range": [-1.0, 1.0]},
+        "action": {
+            **action,
+            "size": env.action_size,
+            "scale": task.action_scale(env.config),
+            "range": [-1.0, 1.0],
+        },
         "network": dict(network_spec),
         "parameters": {"total": networks.count(params), "policy": networks.policy_count(params)},
         "trained": trained,
+        "policies": {name: str(folder) for name, folder in (policies or {}).items()},
     }
     (path / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return path
@@ -157,45 +131,53 @@ def load(path: str | Path) -> Policy:
 # Deployment folders
 
 
+def dependencies(path: str | Path, given: dict[str, str] | None = None) -> dict[str, str]:
+    """Task name -> folder of each policy the exported policy at ``path`` was trained with: from
+    ``given`` where named there, else as its manifest records them (a relative folder is taken from
+    the policy folder; manifests without a ``policies`` entry record them in ``run_config``)."""
+    path = Path(path)
+    folder = path / "policy" if (path / "policy" / "manifest.json").exists() else path
+    manifest = load(folder).manifest
+    task = tasks.get(manifest["env"])
+    given = dict(given or {})
+    unknown = sorted(set(given) - set(task.depends))
+    if unknown:
+        raise ValueError(f"a {task.name!r} policy takes no {', '.join(unknown)} policy")
+    recorded = manifest.get("policies")
+    if recorded is None:  # exported before manifests listed them
+        run = (manifest.get("run_config") or {}).get("config") or {}
+        recorded = {name: run[field] for name, field in task.depends.items() if run.get(field)}
+    out = {}
+    for name, where in recorded.items():
+        if name in given:
+            continue
+        candidate = Path(where) if Path(where).is_absolute() else folder / where
+        if (
+            not (candidate / "manifest.json").exists()
+            and not (candidate / "policy" / "manifest.json").exists()
+        ):
+            raise ValueError(
+                f"{path} was trained with the {name} policy in {where}, which is not there; name one"
+                f" (--{name} FOLDER)"
+            )
+        out[name] = str(candidate)
+    return {**out, **given}
+
+
 class ExportError(ValueError):
     """A run or policy folder that cannot be exported (the message says why)."""
 
 
-_FIELDS = {
-    "lidar": None,  # per ray, filled in below
-    "robot_velocity": (["vx", "vy", "wz"], ["m/s", "m/s", "rad/s"]),
-    "robot_acceleration": (["ax", "ay", "alpha_z"], ["m/s^2", "m/s^2", "rad/s^2"]),
-    "previous_action": (["a_vx", "a_vy", "a_wz"], ["1", "1", "1"]),
-    "previous_action_2": (["a_vx", "a_vy", "a_wz"], ["1", "1", "1"]),
-    "user": (
-        ["p_x", "p_y", "v_x", "v_y", "w_z", "phi", "theta", "d"],
-        ["m", "m", "m/s", "m/s", "rad/s", "rad", "rad", "m"],
-    ),
-    "goal": (["p_x", "p_y", "d", "theta", "dyaw"], ["m", "m", "m", "rad", "rad"]),
-    "guide": (
-        [f"{q}_u{i}_{c}" for q in ("v", "q") for i in (1, 2) for c in ("x", "y", "wz")]
-        + ["u_w", "a_prev", "a_prev_2"],
-        ["m/s"] * 2
-        + ["rad/s"]
-        + ["m/s"] * 2
-        + ["rad/s"]
-        + ["m/s^2"] * 2
-        + ["rad/s^2"]
-        + ["m/s^2"] * 2
-        + ["rad/s^2", "1", "1", "1"],
-    ),
-}
-
-
 def observation_fields(manifest: dict) -> list[dict]:
     """Every slice of the observation with its components' names and units, in order."""
+    task = tasks.get(manifest["env"])
     out = []
     for name, (start, stop) in manifest["observation_layout"].items():
-        if name == "lidar":
-            names, units = ["range"], ["m"]
-        else:
-            names, units = _FIELDS["user" if name.startswith("user") else name]
-        if name != "lidar" and len(names) != stop - start:
+        try:
+            names, units = (list(x) for x in task.field(name))
+        except KeyError as err:
+            raise ExportError(str(err.args[0])) from None
+        if len(names) != 1 and len(names) != stop - start:
             raise ExportError(f"observation field {name!r} has {stop - start} values, expected {len(names)}")
         out.append({"name": name, "start": start, "stop": stop, "components": names, "units": units})
     return out
@@ -206,11 +188,12 @@ def deployment_section(manifest: dict) -> dict:
     env = manifest["env_config"]
     section = {
         "control_hz": CONTROL_HZ,
+        "policy_layers": networks.from_spec(manifest["network"]).policy_layers(),
         "observation": observation_fields(manifest),
         "observation_normaliser": "folded into policy.onnx; obs_mean/obs_std in params.npz",
         "observation_clip": manifest["observation_clip"],
     }
-    if manifest["env"] == "guide":
+    if not tasks.get(manifest["env"]).drives_base:
         return section
     robot, safety = env["robot"], env["safety"]
     num_rays = env["num_rays"]
@@ -239,7 +222,6 @@ def deployment_section(manifest: dict) -> dict:
         "footprint": {"length": KAIROS.length, "width": KAIROS.width, "radius": KAIROS.radius},
         "collision_distance": safety["collision_distance"],
         "critical_distance": safety["critical_distance"],
-        "encoder_strides": list(networks.actor_critic.ENCODER_STRIDES),
     }
 
 

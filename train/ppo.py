@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 
 import flax.linen as nn
 import jax
@@ -234,7 +235,15 @@ class Trainer:
     """PPO on ``num_envs`` copies of ``env`` with the Flax ``network`` (``obs -> (mean, log_std,
     value)``)."""
 
-    def __init__(self, env, network: nn.Module, config: PPOConfig, num_envs: int, devices=None):
+    def __init__(
+        self,
+        env,
+        network: nn.Module,
+        config: PPOConfig,
+        num_envs: int,
+        devices=None,
+        ratios: Mapping | None = None,
+    ):
         devices = list(devices if devices is not None else jax.devices())
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
@@ -249,6 +258,7 @@ class Trainer:
         self.network = network
         self.config = config
         self.num_envs = num_envs
+        self.ratios = dict(ratios or {})  # name -> envs.tasks.Ratio
         self.mesh = Mesh(np.array(devices), ("envs",))
         self._sharded = NamedSharding(self.mesh, P("envs"))
         self.optimizer = optax.chain(
@@ -373,16 +383,15 @@ class Trainer:
         )
         return state, self._metrics(traj, parts, lr, params)
 
-    @staticmethod
-    def _metrics(traj, parts, lr, params) -> dict[str, jax.Array]:
+    def _metrics(self, traj, parts, lr, params) -> dict[str, jax.Array]:
         ended = traj["episode_done"]
         episodes = jnp.sum(ended)
         per_episode = lambda x: jnp.sum(x * ended) / jnp.maximum(episodes, 1.0)  # noqa: E731
         m = {k: jnp.mean(v) for k, v in traj["metrics"].items()}
-        if "at_request" in traj["metrics"]:  # GuideRL: share of requests with the right user chosen
-            requests = jnp.sum(traj["metrics"]["at_request"])
-            m["guide/accuracy"] = jnp.sum(traj["metrics"]["correct_at_request"]) / jnp.maximum(requests, 1.0)
-            m["guide/requests"] = requests
+        for name, ratio in self.ratios.items():  # shares of events (envs.tasks.Ratio)
+            events = jnp.sum(traj["metrics"][ratio.denominator])
+            m[name] = jnp.sum(traj["metrics"][ratio.numerator]) / jnp.maximum(events, 1.0)
+            m[ratio.count] = events
         m.update({k: v[-1] for k, v in parts.items()})  # the last epoch's
         m.update(
             {

@@ -54,10 +54,10 @@ import inspect
 import itertools
 import math
 import textwrap
+from typing import Any
 
 import envs
-from envs.guide import GuideConfig
-from envs.nav import NavConfig
+from envs import tasks
 from methd_jax.floors import ASSETS, FloorConfig
 from train.ppo import PPOConfig
 
@@ -74,9 +74,9 @@ class RunConfig:
     """Everything that defines a training run."""
 
     env_name: str = "su"
-    """Environment: "su", "nav" or "guide"."""
-    env: NavConfig | GuideConfig = envs.PRESETS["su"]
-    """The environment's own options (``env.<field>=value``)."""
+    """The task (a row of ``envs.tasks.TASKS``: "su", "nav", "guide", ...)."""
+    env: Any = tasks.get("su").config
+    """The task's environment options, its configuration class (``env.<field>=value``)."""
     num_envs: int = 2048
     """Parallel environments."""
     timesteps: int = 960_000
@@ -90,7 +90,8 @@ class RunConfig:
     seed: int = 0
     """Seed of everything random in the run."""
     guide_run: str = ""
-    """``nav`` only: a ``guide`` run folder whose exported policy drives the goal (empty: scripted)."""
+    """A ``guide`` run or policy folder whose policy drives the goal, for the tasks that take one
+    (``nav``; empty: scripted)."""
     checkpoint_every: int = 50
     """Iterations between checkpoints (one is always written at the end)."""
     init_from: str = ""
@@ -100,9 +101,10 @@ class RunConfig:
     see more observation fields, e.g. a second user, which start at zero weight)."""
 
     def __post_init__(self):
-        if self.env_name not in envs.PRESETS:
-            raise ConfigError(f"env_name must be one of {sorted(envs.PRESETS)}, got {self.env_name!r}")
-        expected = GuideConfig if self.env_name == "guide" else NavConfig
+        if self.env_name not in tasks.TASKS:
+            raise ConfigError(f"env_name must be one of {', '.join(tasks.TASKS)}, got {self.env_name!r}")
+        task = tasks.get(self.env_name)
+        expected = type(task.config)
         if not isinstance(self.env, expected):
             raise ConfigError(f"env must be a {expected.__name__} for {self.env_name!r}")
         for name in ("num_envs", "timesteps", "checkpoint_every"):
@@ -110,8 +112,9 @@ class RunConfig:
                 raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
         if not self.hidden or min(self.hidden) < 1:
             raise ConfigError(f"hidden must list positive layer widths, got {self.hidden}")
-        if self.guide_run and self.env_name != "nav":
-            raise ConfigError("guide_run applies to env_name=nav only")
+        if self.guide_run and "guide_run" not in task.depends.values():
+            takers = [t.name for t in tasks.TASKS.values() if "guide_run" in t.depends.values()]
+            raise ConfigError(f"guide_run applies to env_name={' or '.join(takers)} only")
         if (self.num_envs * self.ppo.rollouts) % self.ppo.minibatches:
             raise ConfigError(
                 f"num_envs x ppo.rollouts ({self.num_envs * self.ppo.rollouts}) must be divisible by "
@@ -136,7 +139,7 @@ _CLUTTERED_FLOOR = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 8), num_p
 _QUICK = RunConfig(
     env_name="su",
     env=dataclasses.replace(
-        envs.PRESETS["su"],
+        tasks.get("su").config,
         floor=_OPEN_FLOOR,
         motion="sample",
         num_rays=_CPU_RAYS,
@@ -188,7 +191,7 @@ _NAV_CPU = dataclasses.replace(
 
 _GUIDE = RunConfig(
     env_name="guide",
-    env=envs.PRESETS["guide"],
+    env=tasks.get("guide").config,
     num_envs=4096,
     timesteps=240_000,
     hidden=(128, 128),
@@ -228,7 +231,7 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
     ),
     "nav": (
         "NavRL with two users, Table 4.3/4.4 (2,048 envs, 960k timesteps); goal from guide_run= or scripted",
-        RunConfig(env_name="nav", env=envs.PRESETS["nav"]),
+        RunConfig(env_name="nav", env=tasks.get("nav").config),
     ),
 }
 

@@ -10,8 +10,10 @@ standing still, and writes into ``--out``:
 - ``u_w.png``: the user weight over time against the requester (``guide``, two-user ``nav``);
 - ``rollout.mcap``: everything as Foxglove scene, LaserScan and pose channels.
 
-``key=value`` options change the environment (fields of ``envs.NavConfig`` / ``envs.GuideConfig``,
-for example ``lab=true`` or ``motion=sample``).
+A task the pictures cannot draw (``envs.tasks.Task.pictures``) gets ``episode.npz`` instead
+(observations, actions, rewards, done flags). ``key=value`` options change the environment (fields
+of the task's configuration, for example ``lab=true`` or ``motion=sample``). A NavRL policy drives
+its goal with the GuideRL policy it was trained with (``--guide`` names another).
 """
 
 from __future__ import annotations
@@ -24,42 +26,37 @@ import jax
 import numpy as np
 
 import envs
-from envs.guide import GuideConfig
-from envs.nav import NavConfig
+from envs import tasks
 from methd_jax import viz
 from methd_jax.cli import OneLineParser
 from train import export
-from train.evaluate import guide_run_of
 from train.presets import ConfigError, override
+from train.run import load_dependencies
 
 
-def build(run: str | None, env_name: str | None, overrides: list[str]):
-    """(environment, policy or None) for ``run`` or ``env_name``, with ``overrides`` applied."""
+def build(
+    run: str | None, env_name: str | None, overrides: list[str], policies: dict[str, str] | None = None
+):
+    """(task, environment, policy or None) for ``run`` or ``env_name``, with ``overrides`` applied; the
+    policies ``run`` was trained with (GuideRL for NavRL) from ``policies`` (task name -> folder)
+    or where its manifest records them."""
     if run is None:
         name = env_name or "su"
-        if name not in envs.PRESETS:
-            raise ConfigError(f"--env must be one of {', '.join(envs.PRESETS)}, got {name!r}")
-        config = override(envs.PRESETS[name], overrides)
-        return (envs.GuideEnv(config) if name == "guide" else envs.NavEnv(config)), None
+        if name not in tasks.TASKS:
+            raise ConfigError(f"--env must be one of {', '.join(tasks.TASKS)}, got {name!r}")
+        task = tasks.get(name)
+        return task, task.build(override(task.config, overrides)), None
     try:
         policy = export.load(run)
+        folders = export.dependencies(run, policies)
     except (FileNotFoundError, ValueError) as err:
         raise ConfigError(str(err)) from None
     name = policy.manifest["env"]
     if env_name is not None and env_name != name:
         raise ConfigError(f"{run} holds a {name!r} policy; drop --env or pass --env {name}")
-    if name == "guide":
-        config = override(export.from_jsonable(GuideConfig(), policy.manifest["env_config"]), overrides)
-        return envs.GuideEnv(config), policy
-    config = override(export.from_jsonable(NavConfig(), policy.manifest["env_config"]), overrides)
-    guide = guide_run_of(run) if config.num_users == 2 else ""
-    guide_policy = None
-    if guide:
-        try:
-            guide_policy = export.load(guide)
-        except (FileNotFoundError, ValueError) as err:
-            raise ConfigError(f"the GuideRL run of {run}: {err}") from None
-    return envs.NavEnv(config, guide_policy=guide_policy), policy
+    task = tasks.get(name)
+    config = override(task.config_from(policy.manifest["env_config"]), overrides)
+    return task, task.build(config, policies=load_dependencies(folders, run)), policy
 
 
 def trimmed(rollout: viz.Rollout, tail: int = 25) -> viz.Rollout:
@@ -106,6 +103,15 @@ def summary(rollout: viz.Rollout) -> str:
     return "; ".join(parts)
 
 
+def trace_summary(name: str, arrays: dict) -> str:
+    done = arrays["done"]
+    steps = int(np.argmax(done)) + 1 if done.any() else len(done)
+    ended = (
+        f"episode ended after {steps} steps" if done.any() else f"episode still running after {steps} steps"
+    )
+    return f"{name}: {ended}, return {float(arrays['reward'][:steps].sum()):.2f}"
+
+
 def main(argv=None) -> int:
     ap = OneLineParser(
         prog="python -m train.rollout",
@@ -115,7 +121,10 @@ def main(argv=None) -> int:
         "run", nargs="?", help="run folder or exported policy folder (omit to watch --env standing still)"
     )
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="environment options, e.g. lab=true")
-    ap.add_argument("--env", choices=sorted(envs.PRESETS), help="environment without a policy (default su)")
+    ap.add_argument("--env", choices=list(tasks.TASKS), help="environment without a policy (default su)")
+    ap.add_argument(
+        "--guide", help="GuideRL policy folder for a NavRL policy (default: the one it was trained with)"
+    )
     ap.add_argument(
         "--steps", type=int, default=1500, help="control steps to record, at 50 Hz (default 1500)"
     )
@@ -129,14 +138,24 @@ def main(argv=None) -> int:
     if args.steps < 1 or args.stride < 1:
         ap.error("--steps and --stride must be at least 1")
     try:
-        env, policy = build(args.run, args.env, args.overrides)
+        task, env, policy = build(
+            args.run, args.env, args.overrides, {"guide": args.guide} if args.guide else None
+        )
     except (ConfigError, ValueError) as err:
         ap.error(str(err))
     out = args.out or (Path(args.run) / "rollout" if args.run else Path(f"rollout-{args.env or 'su'}"))
     print(
         f"recording {args.steps} steps of {'the policy in ' + args.run if args.run else args.env or 'su'} ..."
     )
-    rollout = trimmed(envs.record(env, jax.random.key(args.seed), args.steps, policy))
+    key = jax.random.key(args.seed)
+    if not task.pictures:
+        arrays = envs.trace(env, key, args.steps, policy)
+        out.mkdir(parents=True, exist_ok=True)
+        np.savez(out / "episode.npz", **arrays)
+        print(trace_summary(task.name, arrays))
+        print(f"  arrays {out / 'episode.npz'} (obs, action, reward, done)")
+        return 0
+    rollout = trimmed(envs.record(env, key, args.steps, policy))
     print(summary(rollout))
     files = write_all(rollout, out, args.stride)
     for kind, path in files.items():

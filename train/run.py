@@ -22,11 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import envs
 import networks
-from envs.guide import GuideEnv
-from envs.nav import NavEnv
+from envs import tasks
 from methd_jax.cli import OneLineParser
+from methd_jax.jsonable import from_jsonable, jsonable
 from methd_jax.motion import MotionDataError
 from train import distributed, export
 from train.checkpoint import CheckpointError, Checkpoints
@@ -35,8 +34,6 @@ from train.presets import PRESETS, ConfigError, RunConfig, apply_overrides, opti
 
 CHUNK = 8
 """Iterations per compiled call of the run loop (fewer where a checkpoint or the end comes first)."""
-
-THESIS_POLICY_PARAMETERS = {"su": 702_674, "nav": 706_770, "guide": 18_690}
 
 
 class NonFiniteError(RuntimeError):
@@ -52,34 +49,39 @@ class Setup:
 
 
 def network_spec(config: RunConfig) -> dict:
-    if config.env_name == "guide":
-        return {
-            "class": "GuideActorCritic",
-            "hidden": list(config.hidden),
-            "init_log_std": config.init_log_std,
-        }
-    return {
-        "class": "ActorCritic",
-        "hidden": list(config.hidden),
-        "num_rays": config.env.num_rays,
-        "init_log_std": config.init_log_std,
-    }
+    """The network of ``config``'s task, as ``networks.from_spec`` takes it."""
+    return tasks.get(config.env_name).network(config.env, config.hidden, config.init_log_std)
+
+
+def dependencies(config: RunConfig) -> dict[str, str]:
+    """Task name -> folder of each policy the run's environment takes (``guide_run=`` ...)."""
+    task = tasks.get(config.env_name)
+    return {name: getattr(config, field) for name, field in task.depends.items() if getattr(config, field)}
+
+
+def load_dependencies(folders: dict[str, str], what: str) -> dict:
+    """The policies in ``folders`` (task name -> folder), each checked to be of that task."""
+    policies = {}
+    for name, folder in folders.items():
+        try:
+            policy = export.load(folder)
+        except (FileNotFoundError, ValueError) as err:
+            raise ConfigError(f"the {name} policy of {what}: {err}") from None
+        if policy.manifest["env"] != name:
+            kind = policy.manifest["env"]
+            raise ConfigError(f"{folder} holds a {kind!r} policy, not a {name} policy ({what})")
+        policies[name] = policy
+    return policies
 
 
 def build(config: RunConfig, devices=None) -> Setup:
     """The environment, network and trainer of ``config``."""
-    if config.env_name == "guide":
-        env = GuideEnv(config.env)
-    else:
-        guide = None
-        if config.guide_run:
-            guide = export.load(config.guide_run)
-            if guide.manifest["env"] != "guide":
-                kind = guide.manifest["env"]
-                raise ConfigError(f"guide_run={config.guide_run} holds a {kind!r} policy, not a guide policy")
-        env = NavEnv(config.env, guide_policy=guide)
+    task = tasks.get(config.env_name)
+    env = task.build(config.env, policies=load_dependencies(dependencies(config), "this run"))
     spec = network_spec(config)
-    trainer = Trainer(env, networks.from_spec(spec), config.ppo, config.num_envs, devices=devices)
+    trainer = Trainer(
+        env, networks.from_spec(spec), config.ppo, config.num_envs, devices=devices, ratios=task.ratios
+    )
     return Setup(config, env, spec, trainer)
 
 
@@ -158,9 +160,9 @@ def _shapes(tree) -> list:
     return [(jax.tree_util.keystr(k), v.shape) for k, v in jax.tree_util.tree_leaves_with_path(tree)]
 
 
-def _symlog_curve(rows: list[dict], path: Path, title: str) -> None:
+def _symlog_curve(rows: list[dict], path: Path, title: str, ratios: dict) -> None:
     """Mean episode return and mean reward per step against transitions (symlog, as the thesis plots
-    rewards), and GuideRL's accuracy at the request when there is one."""
+    rewards), and the task's ratios (``envs.tasks.Ratio``, e.g. GuideRL's accuracy at the request)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -171,9 +173,10 @@ def _symlog_curve(rows: list[dict], path: Path, title: str) -> None:
         ("mean episode return", [(r["transitions"], r["episode/return"]) for r in ended]),
         ("mean reward per step", [(r["transitions"], r["reward/step"]) for r in rows]),
     ]
-    acc = [(r["transitions"], 100 * r["guide/accuracy"]) for r in rows if r.get("guide/requests", 0) > 0]
-    if acc:
-        panels.append(("correct user at the request (%)", acc))
+    for name, ratio in ratios.items():
+        pts = [(r["transitions"], 100 * r[name]) for r in rows if r.get(ratio.count, 0) > 0]
+        if pts:
+            panels.append((f"{ratio.label} (%)", pts))
     fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4), squeeze=False)
     for ax, (label, pts) in zip(axes[0], panels, strict=True):
         if pts:
@@ -183,7 +186,7 @@ def _symlog_curve(rows: list[dict], path: Path, title: str) -> None:
             if len(y) > 2 * k > 1:
                 ax.plot(x[k - 1 :], np.convolve(y, np.ones(k) / k, mode="valid"), lw=2, label=f"mean of {k}")
             ax.legend(loc="lower right")
-        if not label.startswith("correct"):
+        if not label.endswith("(%)"):
             ax.set_yscale("symlog")
         ax.set(xlabel="environment transitions", ylabel=label)
         ax.grid(alpha=0.3)
@@ -238,10 +241,11 @@ def _write_readme(run_dir: Path, setup: Setup, meta: dict, rows: list[dict]) -> 
         f"| throughput | {meta['transitions_per_s']:,.0f} transitions/s (with updates, after compiling) |",
         f"| mean episode return (last 10 iterations with episodes) | {final_return:.1f} |",
     ]
-    if c.env_name == "guide":
-        acc = [r["guide/accuracy"] for r in rows if r.get("guide/requests", 0) > 0][-10:]
-        shown = f"{100 * np.mean(acc):.1f}%" if acc else "no request reached yet"
-        lines.append(f"| correct user at the request (last 10 iterations) | {shown} |")
+    task = tasks.get(c.env_name)
+    for name, ratio in task.ratios.items():
+        seen = [r[name] for r in rows if r.get(ratio.count, 0) > 0][-10:]
+        shown = f"{100 * np.mean(seen):.1f}%" if seen else "none yet"
+        lines.append(f"| {ratio.label} (last 10 iterations) | {shown} |")
     lines += [
         "",
         "Files: `config.json` (the resolved configuration), `metrics.jsonl` (scalars per iteration),",
@@ -261,8 +265,8 @@ def _write_readme(run_dir: Path, setup: Setup, meta: dict, rows: list[dict]) -> 
         "state = env.step(state, policy(state.obs))",
         "```",
     ]
-    if c.env_name == "guide":
-        lines += ["", f"Drive NavRL's goal with it: `python -m train.run nav guide_run={run_dir}`"]
+    if task.readme is not None:
+        lines += ["", *task.readme(str(run_dir))]
     (run_dir / "README.md").write_text("\n".join(lines) + "\n")
 
 
@@ -301,7 +305,7 @@ def train(
     meta = {
         "preset": preset_name,
         "overrides": list(overrides),
-        "config": export.jsonable(config),
+        "config": jsonable(config),
         "device": f"{trainer.mesh.devices.size} x {jax.devices()[0].device_kind} "
         f"({jax.default_backend()}){processes}",
     }
@@ -329,10 +333,11 @@ def train(
 
     params = state.params
     meta["parameters"], meta["policy_parameters"] = networks.count(params), networks.policy_count(params)
-    thesis = THESIS_POLICY_PARAMETERS[config.env_name]
+    thesis = tasks.get(config.env_name).thesis_parameters
     log(
-        f"{setup.network_spec['class']}: {meta['policy_parameters']:,} policy params (thesis {thesis:,}), "
-        f"{meta['parameters']:,} with the critic; {config.num_envs} envs on {meta['device']}; "
+        f"{setup.network_spec['class']}: {meta['policy_parameters']:,} policy params"
+        + (f" (thesis {thesis:,}), " if thesis else ", ")
+        + f"{meta['parameters']:,} with the critic; {config.num_envs} envs on {meta['device']}; "
         f"{config.iterations} iterations of {trainer.transitions_per_iteration:,} transitions"
     )
 
@@ -371,7 +376,7 @@ def train(
                     )
                 row = {"iteration": it + j + 1, "transitions": (it + j + 1) * per, "seconds": dt, **m}
                 _record(row, m, rows, writer, run_dir if primary else None, per)
-                post = _postfix(m, post)
+                post = _postfix(m, post, trainer.ratios)
             if it > start:  # the first call of a process includes compilation
                 timed, timed_s = timed + count, timed_s + dt * count
             it += count
@@ -383,7 +388,9 @@ def train(
                 ckpts.save(it, state)
                 last_saved = it
                 if primary:
-                    _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
+                    _symlog_curve(
+                        rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}", trainer.ratios
+                    )
             if out_of_time:
                 log(f"stopping after iteration {it}: the {max_minutes:g}-minute budget is spent")
                 break
@@ -404,13 +411,14 @@ def train(
             params=state.params,
             obs_stats=state.obs_stats,
             obs_clip=config.ppo.obs_clip,
+            policies=dependencies(config),
             trained={
                 "run": str(run_dir),
                 "iteration": meta["iteration"],
                 "transitions": meta["iteration"] * per,
             },
         )
-        _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}")
+        _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}", trainer.ratios)
         _write_readme(run_dir, setup, meta, rows)
     distributed.barrier("run folder written")
     log(f"wrote {run_dir} ({meta['transitions_per_s']:,.0f} transitions/s)")
@@ -430,13 +438,14 @@ def _record(row: dict, m: dict, rows: list, writer, run_dir: Path | None, per: i
     writer.add_scalar("perf/transitions_per_s", per / row["seconds"], row["transitions"])
 
 
-def _postfix(m: dict, last: dict) -> dict:
-    """The progress bar's text: the newest episode return and length, GuideRL's accuracy."""
+def _postfix(m: dict, last: dict, ratios: dict) -> dict:
+    """The progress bar's text: the newest episode return and length, the task's ratios."""
     post = dict(last)
     if m["episode/count"] > 0:
         post |= {"return": f"{m['episode/return']:.1f}", "len": f"{m['episode/length'] / 50:.1f}s"}
-    if "guide/accuracy" in m:
-        post["acc"] = f"{100 * m['guide/accuracy']:.0f}%"
+    for name, ratio in ratios.items():
+        if m.get(ratio.count, 0) > 0:
+            post[ratio.short] = f"{100 * m[name]:.0f}%"
     return post
 
 
@@ -479,8 +488,8 @@ def load_config(run_dir: str | Path) -> tuple[str, list[str], RunConfig]:
         return name, overrides, apply_overrides(preset(name), overrides)
     try:
         kind = stored["env_name"]
-        default = RunConfig(env_name=kind, env=envs.PRESETS[kind])
-        return name, overrides, export.from_jsonable(default, stored)
+        default = RunConfig(env_name=kind, env=tasks.get(kind).config)
+        return name, overrides, from_jsonable(default, stored)
     except (KeyError, TypeError, ValueError) as err:
         raise ConfigError(
             f"{meta_path}: its configuration does not load ({type(err).__name__}: {err})"

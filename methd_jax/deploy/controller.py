@@ -74,10 +74,10 @@ class Controller:
         watchdog: WatchdogConfig = WatchdogConfig(),
     ):
         self.manifest = load_manifest(path)
-        if self.manifest["env"] not in ("su", "nav"):
+        if self.manifest["action"].get("frame") != "robot":
             raise DeployError(
-                f"{path}: a {self.manifest['env']!r} policy does not drive the base; the controller runs "
-                "'su' or 'nav' policies (a GuideRL policy sets the goal of a 'nav' policy)"
+                f"{path}: a {self.manifest['env']!r} policy does not drive the base (its action is no "
+                "velocity command in the robot frame); a GuideRL policy sets the goal of a 'nav' policy"
             )
         if backend == "onnx":
             self.policy = OnnxPolicy(self.manifest)

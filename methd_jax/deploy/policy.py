@@ -95,7 +95,7 @@ def _check(manifest: dict, path: Path) -> None:
     hz = float(d["control_hz"])
     if not (math.isfinite(hz) and hz > 0):
         raise DeployError(f"{file}: control_hz must be positive, got {d['control_hz']!r}")
-    if manifest["env"] == "guide":
+    if manifest["action"].get("frame") != "robot":  # not a base command: no robot to check against
         return
     rays = d["lidar"]["num_rays"]
     if manifest["network"].get("num_rays") != rays or manifest["observation_layout"]["lidar"] != [0, rays]:
@@ -127,41 +127,49 @@ def conv1d(x: np.ndarray, kernel: np.ndarray, stride: int) -> np.ndarray:
 
 
 class NumpyPolicy:
-    """The exported network evaluated with numpy (no onnxruntime needed; float32 throughout)."""
+    """The exported network evaluated with numpy (no onnxruntime needed; float32 throughout), layer
+    by layer as the manifest's ``deployment.policy_layers`` describes it (written by the network
+    itself at export: ``networks.ActorCritic.policy_layers``)."""
 
     def __init__(self, manifest: dict):
         with np.load(Path(manifest["_dir"]) / "params.npz") as data:
             self.p = {k: data[k].astype(np.float32) for k in data.files}
         self.manifest = manifest
         self.clip = float(manifest["observation_clip"])
-        self.strides = manifest["deployment"].get("encoder_strides")
-        self.spec = manifest["network"]
+        self.layers = manifest["deployment"].get("policy_layers")
+        if not isinstance(self.layers, dict) or self.layers.get("activation") != "elu":
+            raise DeployError(
+                f"{manifest['_dir']}: no ELU policy_layers in the deployment section; "
+                "re-run `python -m train.export`"
+            )
+        names = [*self.layers["body"], self.layers["mean"]]
+        if "encoder" in self.layers:
+            enc = self.layers["encoder"]
+            names += [c["params"] for c in enc["conv"]] + [enc["project"]]
+        missing = sorted(n for n in names if f"{n}/kernel" not in self.p or f"{n}/bias" not in self.p)
+        if missing:
+            raise DeployError(f"{manifest['_dir']}: params.npz lacks the layers {missing} its manifest names")
 
     def _dense(self, x, name):
-        return x @ self.p[f"params/{name}/kernel"] + self.p[f"params/{name}/bias"]
+        return x @ self.p[f"{name}/kernel"] + self.p[f"{name}/bias"]
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, np.float32)
         single = obs.ndim == 1
         x = obs[None] if single else obs
-        z = normalise(x, self.p["obs_mean"], self.p["obs_std"], self.clip)
-        if self.spec["class"] == "GuideActorCritic":
-            h = z
-            for i in range(len(self.spec["hidden"])):
-                h = elu(self._dense(h, f"actor/hidden{i}"))
-            mean = self._dense(h, "actor/policy")
-        else:
-            rays = self.spec["num_rays"]
-            h = z[:, :rays, None]
-            for i, stride in enumerate(self.strides):
-                name = f"params/encoder/conv{i}"
-                h = elu(conv1d(h, self.p[f"{name}/kernel"], stride) + self.p[f"{name}/bias"])
-            latent = elu(self._dense(h.reshape(h.shape[0], -1), "encoder/project"))
-            h = np.concatenate([latent, z[:, rays:]], -1)
-            for i in range(len(self.spec["hidden"])):
-                h = elu(self._dense(h, f"body{i}"))
-            mean = self._dense(h, "policy")
-        action = np.clip(mean, -1.0, 1.0).astype(np.float32)
+        h = normalise(x, self.p["obs_mean"], self.p["obs_std"], self.clip)
+        if "encoder" in self.layers:
+            enc = self.layers["encoder"]
+            rays = enc["input"]
+            e = h[:, :rays, None]
+            for conv in enc["conv"]:
+                name = conv["params"]
+                e = elu(conv1d(e, self.p[f"{name}/kernel"], conv["stride"]) + self.p[f"{name}/bias"])
+            latent = elu(self._dense(e.reshape(e.shape[0], -1), enc["project"]))
+            h = np.concatenate([latent, h[:, rays:]], -1)
+        for name in self.layers["body"]:
+            h = elu(self._dense(h, name))
+        action = np.clip(self._dense(h, self.layers["mean"]), -1.0, 1.0).astype(np.float32)
         return action[0] if single else action
 
 
