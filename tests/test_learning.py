@@ -51,6 +51,8 @@ def _policies(setup, state, action_size):
     }
 
 
+@pytest.mark.slow  # 4 min; the default suite checks the shipped SU policy (test_pretrained.py) and
+# that a run learns (the toy task of test_tasks.py)
 def test_su_policy_learns_to_reach_and_hold_the_hip(tmp_path):
     """614k transitions (the thesis trained on ~2,000M) on an open floor: after the request, while
     the user stands and reaches out, the trained robot holds the HIP where random acting stays
