@@ -1,12 +1,14 @@
 """Flax modules only: the thesis's actor-critic (SU, NavRL) and GuideRL networks."""
 
 from networks.actor_critic import (
+    LOG_STD_RANGE,
     ActorCritic,
     GuideActorCritic,
     GuidePolicy,
     LidarEncoder,
     Outputs,
     count,
+    make_inference_fn,
     policy_count,
     transfer_inputs,
 )
@@ -23,6 +25,7 @@ def from_spec(spec: dict):
 
 
 __all__ = [
+    "LOG_STD_RANGE",
     "ActorCritic",
     "GuideActorCritic",
     "GuidePolicy",
@@ -30,6 +33,7 @@ __all__ = [
     "Outputs",
     "count",
     "from_spec",
+    "make_inference_fn",
     "policy_count",
     "transfer_inputs",
 ]

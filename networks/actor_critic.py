@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from methd_jax.normalise import normalise
+
 ENCODER_CHANNELS = (64, 32, 32, 32)
 ENCODER_KERNELS = (8, 5, 3, 3)
 ENCODER_STRIDES = (4, 3, 1, 1)
@@ -70,6 +72,31 @@ class Outputs(NamedTuple):
     mean: jax.Array  # (..., A) the Gaussian's mean; the deterministic action is clip(mean, -1, 1)
     log_std: jax.Array  # (..., A) its log standard deviation
     value: jax.Array  # (...,) the critic's value estimate
+
+
+LOG_STD_RANGE = (-20.0, 2.0)
+"""The policy's log standard deviation is clipped to this range (skrl's defaults)."""
+
+
+def make_inference_fn(network: nn.Module, obs_clip: float):
+    """Brax-style policy factory for the actor-critics above: ``make_policy(params, obs_mean,
+    obs_std, deterministic=True)`` returns ``policy(obs, key=None) -> action`` that normalises
+    raw observations (:func:`methd_jax.normalise.normalise`, clipped to ``obs_clip``) and returns
+    the Gaussian's mean clipped to [-1, 1], or with ``deterministic=False`` a sample (unclipped:
+    the environments clip, PPO scores the sample). PPO's acting, exported policies and the tests
+    go through it."""
+
+    def make_policy(params, obs_mean, obs_std, deterministic: bool = True):
+        def policy(obs: jax.Array, key: jax.Array | None = None) -> jax.Array:
+            out = network.apply(params, normalise(obs, obs_mean, obs_std, obs_clip))
+            if deterministic:
+                return jnp.clip(out.mean, -1.0, 1.0)
+            std = jnp.exp(jnp.clip(out.log_std, *LOG_STD_RANGE))
+            return out.mean + std * jax.random.normal(key, out.mean.shape)
+
+        return policy
+
+    return make_policy
 
 
 class Conv1D(nn.Module):

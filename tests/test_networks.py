@@ -1,3 +1,5 @@
+import types
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -104,3 +106,45 @@ def test_the_normaliser_is_the_same_line_in_numpy_and_jax():
     np.testing.assert_allclose(got_np, want)
     np.testing.assert_allclose(got_jax, want, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(normalise(x, mean, std, 0.0), (x - mean) / std)  # clip 0: unclipped
+
+
+def test_the_inference_factory_is_what_ppo_and_export_act_with(tmp_path):
+    """networks.make_inference_fn: the deterministic action is clip(mean, -1, 1) of the normalised,
+    clipped observation; a sample scatters around the mean with exp(log_std); PPO's policy and an
+    exported policy give the same actions."""
+    from conftest import export_random_policy
+
+    from train import export
+    from train.ppo import PPOConfig, RunningStats, Trainer
+
+    net = networks.GuideActorCritic(hidden=(16, 16), init_log_std=-1.0)
+    params = net.init(jax.random.key(0), jnp.zeros(15))
+    rng = np.random.default_rng(0)
+    obs = jnp.asarray(rng.normal(size=(256, 15)) * 10, jnp.float32)
+    mean, std = (
+        jnp.asarray(rng.normal(size=15), jnp.float32),
+        jnp.asarray(rng.uniform(0.5, 2, 15), jnp.float32),
+    )
+    make_policy = networks.make_inference_fn(net, 5.0)
+    want = np.clip(np.asarray(net.apply(params, jnp.clip((obs - mean) / std, -5, 5)).mean), -1, 1)
+    np.testing.assert_allclose(make_policy(params, mean, std)(obs), want, atol=1e-6)
+    samples = make_policy(params, mean, std, deterministic=False)(obs, jax.random.key(1))
+    raw = np.asarray(net.apply(params, jnp.clip((obs - mean) / std, -5, 5)).mean)
+    assert 0.3 < float(np.std(np.asarray(samples) - raw)) < 0.45  # exp(-1) = 0.37
+
+    class Env:  # Trainer needs only the sizes to build its policy
+        observation_size, action_size = 15, 1
+
+    trainer = Trainer(Env(), net, PPOConfig(obs_clip=5.0, rollouts=2, minibatches=1), num_envs=2)
+    stats = RunningStats(mean, std**2 - 1e-8, jnp.float32(10.0))
+    np.testing.assert_allclose(trainer.policy(params, stats, obs), want, atol=1e-5)
+
+    from envs.guide import GuideConfig
+
+    env = types.SimpleNamespace(
+        observation_size=15, action_size=1, observation_layout={"guide": slice(0, 15)}, config=GuideConfig()
+    )
+    policy = export.load(export_random_policy(tmp_path, env, "guide", net, seed=3))
+    z = np.clip((np.asarray(obs) - np.asarray(policy.obs_mean)) / np.asarray(policy.obs_std), -5, 5)
+    expected = np.clip(np.asarray(policy.network.apply(policy.params, jnp.asarray(z)).mean), -1, 1)
+    np.testing.assert_allclose(policy(obs), expected, atol=1e-5)

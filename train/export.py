@@ -42,7 +42,6 @@ from methd_jax.control import CONTROL_HZ
 from methd_jax.deploy.policy import params_sha256
 from methd_jax.geometry import KAIROS
 from methd_jax.jsonable import jsonable
-from methd_jax.normalise import normalise
 
 FORMAT = "methd-jax-policy/1"
 
@@ -99,8 +98,8 @@ class Policy:
         return networks.from_spec(self.manifest["network"])
 
     def __call__(self, obs: jax.Array) -> jax.Array:
-        z = normalise(obs, self.obs_mean, self.obs_std, self.manifest["observation_clip"])
-        return jnp.clip(self.network.apply(self.params, z).mean, -1.0, 1.0)
+        make_policy = networks.make_inference_fn(self.network, self.manifest["observation_clip"])
+        return make_policy(self.params, self.obs_mean, self.obs_std)(obs)
 
 
 def load(path: str | Path) -> Policy:

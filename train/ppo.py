@@ -42,10 +42,11 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+import networks
 from envs.wrappers import AutoReset
 from methd_jax.normalise import normalise
+from networks import LOG_STD_RANGE
 
-LOG_STD_RANGE = (-20.0, 2.0)
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
 
@@ -292,11 +293,10 @@ class Trainer:
         )
 
     def policy(self, params, obs_stats: RunningStats, obs, key=None):
-        """Actions for raw observations: the mean if ``key`` is None, else a sample."""
-        mean, log_std, _ = self.network.apply(params, obs_stats.normalize(obs, self.config.obs_clip))
-        if key is None:
-            return mean
-        return mean + jnp.exp(jnp.clip(log_std, *LOG_STD_RANGE)) * jax.random.normal(key, mean.shape)
+        """Actions for raw observations: the mean clipped to [-1, 1] if ``key`` is None, else a
+        sample (``networks.make_inference_fn``)."""
+        make_policy = networks.make_inference_fn(self.network, self.config.obs_clip)
+        return make_policy(params, obs_stats.mean, obs_stats.std, deterministic=key is None)(obs, key)
 
     def _rollout(self, s: TrainState):
         cfg = self.config
