@@ -48,9 +48,9 @@ def walk(points, speeds, request_at_end=True, hold=3.0, yaw=None, name="walk"):
     return Trajectory(name=name, time=t, head=head, wrist=wrist, request_time=min(request, t[-1]), start_ns=0)
 
 
-def run(method, trajs, floor, start, steps=None, cfg=E.EngineConfig()):
+def run(method, trajs, floor, start, steps=None, cfg=None):
     bank = MotionBank.from_trajectories(trajs)
-    engine = E.Engine(method, bank, floor, cfg)
+    engine = E.Engine(method, bank, floor, cfg or E.EngineConfig())
     schedule = E.Schedule(
         users=jnp.arange(len(trajs), dtype=jnp.int32)[:, None],
         start=jnp.asarray(np.repeat(np.asarray(start, np.float32)[None], len(trajs), 0)),

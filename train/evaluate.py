@@ -124,7 +124,7 @@ def evaluate(
     *,
     mu_offset: int = 50,
     seed: int = 0,
-    config: eng.EngineConfig = eng.EngineConfig(),
+    config: eng.EngineConfig | None = None,
     progress: bool = True,
 ) -> dict[str, dict[str, np.ndarray]]:
     """Runs every method; ``su`` / ``mu`` map names to methods. Returns name -> per-episode results
@@ -133,7 +133,7 @@ def evaluate(
     key = jax.random.key(seed)
     for scenario, chosen in (("SU", su), ("MU", mu)):
         for name, method in chosen.items():
-            engine = eng.Engine(method, bank, floor, config)
+            engine = eng.Engine(method, bank, floor, config or eng.EngineConfig())
             starts = eng.start_poses(floor, engine.grid)
             if scenario == "SU":
                 schedule = eng.su_schedule(bank, starts)

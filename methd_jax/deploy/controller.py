@@ -70,7 +70,7 @@ class Controller:
         path: str | Path,
         *,
         backend: str = "onnx",
-        safety: SafetyConfig = SafetyConfig(),
+        safety: SafetyConfig | None = None,
         watchdog: WatchdogConfig = WatchdogConfig(),
     ):
         self.manifest = load_manifest(path)
@@ -92,7 +92,7 @@ class Controller:
         self.watchdog = watchdog
         fp = d["footprint"]
         self.monitor = CollisionMonitor(
-            fp["length"], fp["width"], self.num_rays, d["collision_distance"], safety
+            fp["length"], fp["width"], self.num_rays, d["collision_distance"], safety or SafetyConfig()
         )
         self.interventions: collections.Counter[str] = collections.Counter()
         self.ticks = 0

@@ -31,8 +31,10 @@ def available() -> bool:
     return _rclpy() is not None
 
 
-def run(policy_dir: str, topics: Topics = Topics(), backend: str = "onnx") -> None:
-    """Spins the node until shutdown; raises RuntimeError when ROS 2 is not available."""
+def run(policy_dir: str, topics: Topics | None = None, backend: str = "onnx") -> None:
+    """Spins the node until shutdown (``topics``: default :class:`Topics`); raises RuntimeError when
+    ROS 2 is not available."""
+    topics = topics or Topics()
     ros = _rclpy()
     if ros is None:
         raise RuntimeError("rclpy is not importable: source a ROS 2 installation (setup.bash) first")

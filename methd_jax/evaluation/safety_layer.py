@@ -89,9 +89,11 @@ def filter_command(
     velocities: jax.Array,
     present: jax.Array,
     user_distance: float,
-    config: SafetyConfig = SafetyConfig(),
+    config: SafetyConfig | None = None,
 ) -> jax.Array:
-    """``command`` scaled as :class:`methd_jax.deploy.safety.CollisionMonitor` scales it."""
+    """``command`` scaled as :class:`methd_jax.deploy.safety.CollisionMonitor` scales it (``config``:
+    default :class:`SafetyConfig`)."""
+    config = config or SafetyConfig()
     if not config.enabled:
         return command
     s = obstacle_scale(command, ranges, config.horizon, config.time_step, config.margin)

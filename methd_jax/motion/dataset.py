@@ -91,15 +91,17 @@ def default_dataset(
     n: int = DEFAULT_SIZE,
     seed: int = 0,
     *,
-    config: SynthConfig = SynthConfig(),
+    config: SynthConfig | None = None,
     cache: str | Path | None = None,
     progress: bool = True,
 ) -> list[Trajectory]:
     """The synthetic dataset, made on first use into ``<cache>/motion/<key>/`` and read after.
 
     The folder holds one MCAP bag per trajectory (open them in Foxglove) and ``trajectories.npz``,
-    a fast copy that later calls read. The key encodes ``n``, ``seed`` and the generator config.
+    a fast copy that later calls read. The key encodes ``n``, ``seed`` and the generator config
+    (default :class:`SynthConfig`).
     """
+    config = config or SynthConfig()
     folder = Path(cache or cache_dir()) / "motion" / _key(n, seed, config)
     npz = folder / "trajectories.npz"
     if npz.is_file():
