@@ -27,10 +27,10 @@ def zero_policy(action_size: int) -> Callable[[jax.Array], jax.Array]:
     return lambda obs: jnp.zeros(action_size)
 
 
-def trace(env, key: jax.Array, steps: int, policy: Callable[[jax.Array], jax.Array] | None = None) -> dict:
-    """``steps`` control steps of one episode of any environment of the task table, as numpy arrays
-    ``obs (steps + 1, D)``, ``action (steps, A)``, ``reward (steps,)``, ``done (steps,)`` (the state
-    freezes once the episode ends, so rows after the first ``done`` repeat it)."""
+def _episode(env, key: jax.Array, steps: int, policy, snapshot) -> tuple[dict, object]:
+    """``snapshot(state, action)`` of the reset state (action 0) and after each of ``steps`` steps
+    under ``policy``, in one jitted ``lax.scan`` (the state freezes once the episode ends), as
+    numpy arrays with ``steps + 1`` rows; and the final state."""
     if steps < 1:
         raise ValueError(f"steps must be at least 1, got {steps}")
     policy = policy or zero_policy(env.action_size)
@@ -39,20 +39,29 @@ def trace(env, key: jax.Array, steps: int, policy: Callable[[jax.Array], jax.Arr
         action = policy(state.obs)
         nxt = env.step(state, action)
         state = jax.tree.map(lambda old, new: jnp.where(state.done > 0, old, new), state, nxt)
-        return state, (state.obs, action, state.reward, state.done > 0)
+        return state, snapshot(state, action)
 
     @jax.jit
     def run(key):
         state = env.reset(key)
-        _, (obs, action, reward, done) = jax.lax.scan(body, state, None, length=steps)
-        return {
-            "obs": jnp.concatenate([state.obs[None], obs]),
-            "action": action,
-            "reward": reward,
-            "done": done,
-        }
+        first = snapshot(state, jnp.zeros(env.action_size))
+        state, rest = jax.lax.scan(body, state, None, length=steps)
+        return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, rest), state
 
-    return {k: np.asarray(v) for k, v in run(key).items()}
+    rows, state = run(key)
+    return {k: np.asarray(v) for k, v in rows.items()}, state
+
+
+def trace(env, key: jax.Array, steps: int, policy: Callable[[jax.Array], jax.Array] | None = None) -> dict:
+    """``steps`` control steps of one episode of any environment of the task table, as numpy arrays
+    ``obs (steps + 1, D)``, ``action (steps, A)``, ``reward (steps,)``, ``done (steps,)`` (the state
+    freezes once the episode ends, so rows after the first ``done`` repeat it)."""
+
+    def snapshot(state, action):
+        return {"obs": state.obs, "action": action, "reward": state.reward, "done": state.done > 0}
+
+    rows, _ = _episode(env, key, steps, policy, snapshot)
+    return {"obs": rows["obs"], **{k: rows[k][1:] for k in ("action", "reward", "done")}}
 
 
 def record(
@@ -64,11 +73,8 @@ def record(
     """``steps`` control steps of one episode of ``env`` (from ``envs.make``) driven by
     ``policy(obs) -> action`` (deterministic, e.g. ``train.export.load(run)``; default
     :func:`zero_policy`)."""
-    if steps < 1:
-        raise ValueError(f"steps must be at least 1, got {steps}")
     if not isinstance(env, NavEnv | GuideEnv):
         raise TypeError(f"record needs an environment from envs.make, got {type(env).__name__}")
-    policy = policy or zero_policy(env.action_size)
     is_nav = isinstance(env, NavEnv)
 
     def snapshot(state) -> dict:
@@ -93,23 +99,8 @@ def record(
             }
         return out
 
-    def body(state, _):
-        nxt = env.step(state, policy(state.obs))
-        ended = state.done > 0
-        state = jax.tree.map(lambda old, new: jnp.where(ended, old, new), state, nxt)
-        return state, snapshot(state)
-
-    @jax.jit
-    def run(key):
-        state = env.reset(key)
-        first = snapshot(state)
-        state, rest = jax.lax.scan(body, state, None, length=steps)
-        rows = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
-        w = state.pipeline_state
-        return rows, w.requester, (w.floor if is_nav else None)
-
-    rows, requester, floor = run(key)
-    rows = {k: np.asarray(v) for k, v in rows.items()}
+    rows, state = _episode(env, key, steps, policy, lambda state, action: snapshot(state))
+    requester, floor = state.pipeline_state.requester, state.pipeline_state.floor if is_nav else None
     outcome = "running"
     if rows["done"].any():
         end = int(np.argmax(rows["done"]))

@@ -59,8 +59,11 @@ def load_policy(
     policy = _load(run, kind, want)
     task = tasks.get(kind)
     folders = _dependencies(run, {"guide": str(guide)} if guide and "guide" in task.depends else None)
-    for name in sorted(set(task.depends) - set(folders)):  # the MU procedure needs GuideRL's goal
-        raise ConfigError(f"{run} was trained without a {name} policy (scripted goals); pass one as --{name}")
+    missing = sorted(set(task.depends) - set(folders))  # the MU procedure needs GuideRL's goal
+    if missing:
+        raise ConfigError(
+            f"{run} was trained without a {missing[0]} policy (scripted goals); pass one as --{missing[0]}"
+        )
     policies = run_lib.load_dependencies(folders, str(run))
     env = task.build(task.config_from(policy.manifest["env_config"]), bank=bank, policies=policies)
     return Policy(env, policy, name=SAFETY_ROW if safety else "DRL", safety=safety)
