@@ -249,10 +249,18 @@ def test_safety_wall_ahead_slows_then_stops_never_hits():
     assert reason is None
 
 
-def test_safety_random_scenes_never_lead_into_a_new_hit():
-    m = _monitor()
+def _side_wall_ranges(y_wall: float, num_rays: int = 720) -> np.ndarray:
+    """Ranges to an infinite wall y = y_wall > 0 (robot frame), the wall on the left."""
+    ang = 2 * np.pi * np.arange(num_rays) / num_rays
+    s = np.sin(ang)
+    return np.where(s > 1e-9, y_wall / np.where(s > 1e-9, s, 1.0), np.inf)
+
+
+@pytest.mark.parametrize("slide_angles", [(), (30.0, 60.0)])
+def test_safety_random_scenes_never_lead_into_a_new_hit(slide_angles):
+    m = _monitor(slide_angles=slide_angles)
     rng = np.random.default_rng(1)
-    limited = 0
+    limited = turned = 0
     for _ in range(150):
         ranges = rng.uniform(0.6, 4.0, 720)
         ranges[rng.uniform(size=720) < 0.5] = np.inf
@@ -260,12 +268,39 @@ def test_safety_random_scenes_never_lead_into_a_new_hit():
         out, reason = m(cmd, ranges, np.zeros((0, 2)), np.zeros((0, 2)))
         limited += reason is not None
         assert not _newly_hits(out, ranges)
-        # the filter only scales: same direction, never faster
-        assert (
-            np.allclose(np.cross(out, cmd), 0, atol=1e-9)
-            and np.linalg.norm(out) <= np.linalg.norm(cmd) + 1e-12
-        )
+        # never faster, never turning faster
+        assert np.linalg.norm(out[:2]) <= np.linalg.norm(cmd[:2]) + 1e-12 and abs(out[2]) <= abs(cmd[2])
+        # never further from the command than stopping would be (in (vx, vy, r * wz))
+        w = np.array([1.0, 1.0, m.reach_radius**2])
+        assert np.sum(w * (out - cmd) ** 2) <= np.sum(w * cmd**2) + 1e-9
+        if np.any(out[:2]):  # the linear velocity turned by no more than the largest slide angle
+            cos = out[:2] @ cmd[:2] / (np.linalg.norm(out[:2]) * np.linalg.norm(cmd[:2]))
+            assert cos >= np.cos(np.deg2rad(max(slide_angles, default=0.0))) - 1e-9
+        turned += not np.allclose(np.cross(out, cmd), 0, atol=1e-9)
     assert limited > 50  # the scenes are cluttered: the test exercises the filter
+    if slide_angles:
+        assert turned > 20  # and the slides
+    else:
+        assert turned == 0  # without slide angles the filter only scales
+
+
+def test_safety_slides_along_a_wall_instead_of_stopping():
+    free = np.zeros((0, 2))
+    wall = _side_wall_ranges(0.62)  # 0.62 m to the left: the margin's edge is 0.1 m from it
+    cmd = np.array([1.2, 0.6, 0.0])  # forward and into the wall
+    scaled, _ = _monitor(slide_angles=())(cmd, wall, free, free)
+    out, reason = _monitor()(cmd, wall, free, free)
+    assert reason == "obstacle" and not _newly_hits(out, wall)
+    assert np.linalg.norm(scaled) < 0.3  # scaling alone nearly stops the base
+    assert out[0] > 0.9 and out[1] < cmd[1]  # the slide keeps most of the forward speed
+    # a turn that would swing a corner into the wall: scaling stops the base at once; the closest
+    # clear neighbour keeps the whole turn and steers off the wall (cost 1.0 in (vx, vy, r * wz)
+    # against 1.42 for driving straight on without the turn)
+    wall, cmd = _side_wall_ranges(0.6), np.array([1.0, 0.0, 1.5])
+    scaled, _ = _monitor(slide_angles=())(cmd, wall, free, free)
+    out, reason = _monitor()(cmd, wall, free, free)
+    assert np.abs(scaled).max() < 0.2 and reason == "obstacle" and not _newly_hits(out, wall)
+    np.testing.assert_allclose(out, [0.5, -np.sqrt(0.75), 1.5], atol=1e-12)
 
 
 def test_safety_user_stepping_in_front():

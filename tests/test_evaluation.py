@@ -176,6 +176,8 @@ def test_safety_layer_twin_agrees_with_the_deployment_monitor():
         theirs.append(out)
         reasons.append(why)
     assert 20 < reasons.count("user") and 20 < reasons.count("obstacle") and 20 < reasons.count(None)
+    slid = np.linalg.norm(np.cross(np.asarray(theirs), commands), axis=1) > 1e-6  # not a scaled command
+    assert slid.sum() > 10  # the scenes exercise the slides too
     np.testing.assert_allclose(ours, np.asarray(theirs), atol=1e-4)
 
 

@@ -4,10 +4,25 @@ The commanded twist is held over a short horizon and the footprint (the base's r
 margin) is swept along the resulting arc against the latest scan's points and the users, who are
 extrapolated at their current velocity. The command is scaled down by the largest factor that
 keeps the sweep clear (0: stop). For static points scaling is exact: at factor s the robot covers
-in the horizon T what the full command covers in s*T, so s = (last clear sample time) / T. For
-moving users the factors are tried from that value downwards; a factor is refused when it brings
-the robot inside a user's collision distance and closer than standing still would, so stopping is
-always allowed and moving away from a user who is already too close is too.
+in the horizon T what the full command covers in s*T, so s = (last clear sample time) / T. Each
+point's path in the base's frame is tested between consecutive samples, not only at them
+(:func:`segment_meets_box`), so a corner cannot pass a point unseen between two samples.
+
+When the command's own sweep is blocked, the same test is run for a few neighbours of it: its
+linear velocity turned by +-``slide_angles``, each with and without its yaw rate. Of these, each
+scaled to its own clear factor, the one closest to the command is sent (the distance in
+(vx, vy, r * wz), r the footprint's half-diagonal, so a yaw rate counts as the corners' speed):
+the smallest change to the command that keeps the sweep clear, among the candidates. A base
+commanded into a wall at an angle slides along it instead of stopping (stopping near a wall lets
+a walking user corner the robot), and a base that would swing a corner into furniture while
+turning keeps its turn and steers off, or drives on without it. Ties go to the earlier candidate:
+the command itself, then the command without its turn, then the turned ones in the order of
+``slide_angles``.
+
+For moving users the factors are tried from the chosen candidate's clear factor downwards; a factor
+is refused when it brings the robot inside a user's collision distance and closer than standing
+still would, so stopping is always allowed and moving away from a user who is already too close is
+too.
 
 Points already inside the footprint at t = 0 are ignored (self-returns or a collision that has
 already happened): what is checked is what the command would newly hit. Points inside the margin
@@ -39,6 +54,9 @@ class SafetyConfig:
     """Robot-centre to user distance never to be entered, m (default: the policy's d_coll, 1.37 m)."""
     user_steps: int = 20
     """Scale factors tried against moving users."""
+    slide_angles: tuple[float, ...] = (30.0, 60.0)
+    """Degrees, each in (0, 90): a blocked command's linear velocity is also tried turned by plus
+    and minus each (empty: the command is only scaled)."""
 
     def __post_init__(self):
         if not (self.horizon > 0 and 0 < self.time_step <= self.horizon):
@@ -47,6 +65,34 @@ class SafetyConfig:
             raise ValueError("margin must be >= 0 and user_distance > 0")
         if self.user_steps < 1:
             raise ValueError("user_steps must be >= 1")
+        if not all(0.0 < float(a) < 90.0 for a in self.slide_angles):
+            raise ValueError(f"slide_angles must each lie in (0, 90) degrees, got {self.slide_angles!r}")
+
+    def turns(self) -> np.ndarray:
+        """(K, 3) rows (cos, sin, keep yaw) of the candidates in the order ties are broken: the command,
+        the command without its yaw rate, then +-each slide angle with and without it."""
+        rows = [(1.0, 0.0, 1.0)]
+        if self.slide_angles:
+            rows.append((1.0, 0.0, 0.0))
+        for a in np.deg2rad(np.asarray(self.slide_angles, np.float64)):
+            c, s = float(np.cos(a)), float(np.sin(a))
+            rows += [(c, s, 1.0), (c, -s, 1.0), (c, s, 0.0), (c, -s, 0.0)]
+        return np.asarray(rows)
+
+
+def candidates(command, turns):
+    """The candidate commands ``(K, 3)`` of ``turns`` (see :meth:`SafetyConfig.turns`); numpy or JAX."""
+    c, s, keep = turns[:, 0], turns[:, 1], turns[:, 2]
+    vx, vy, wz = command[0], command[1], command[2]
+    return (c * vx - s * vy, s * vx + c * vy, keep * wz)
+
+
+def change(command, turns, scales, radius):
+    """Squared distance in (vx, vy, radius * wz) from ``command`` to each candidate scaled by its
+    factor, in closed form so that mirrored candidates tie exactly; numpy or JAX."""
+    speed2 = command[0] ** 2 + command[1] ** 2
+    turn2 = (radius * command[2]) ** 2
+    return speed2 * (1.0 + scales**2 - 2.0 * scales * turns[:, 0]) + turn2 * (scales * turns[:, 2] - 1.0) ** 2
 
 
 def arc(command: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -58,6 +104,31 @@ def arc(command: np.ndarray, t: np.ndarray) -> np.ndarray:
         return np.stack([vx * t, vy * t, th], -1)
     s, c = np.sin(th), np.cos(th)
     return np.stack([(vx * s + vy * (c - 1.0)) / wz, (vx * (1.0 - c) + vy * s) / wz, th], -1)
+
+
+def _local(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(T, P, 2): ``points`` (P, 2) in the frame of each pose (T, 3)."""
+    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
+    dx = points[None, :, 0] - poses[:, 0:1]
+    dy = points[None, :, 1] - poses[:, 1:2]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy], -1)
+
+
+def segment_meets_box(start, end, half, xp=np):
+    """(...): whether the segment ``start`` -> ``end`` (..., 2) meets the box |x| <= half[0],
+    |y| <= half[1] (the slab test); numpy, or JAX with ``xp=jax.numpy``.
+
+    A sweep tests each point's path in the base's frame between consecutive samples, not only the
+    samples: a corner can pass a point between two samples, and within a sample the path is a
+    straight segment up to the turn of one sample (0.02 rad at 2 rad/s: 0.04 mm at the corners)."""
+    d = end - start
+    moving = xp.abs(d) > 1e-12
+    step = xp.where(moving, d, 1.0)
+    a, b = (-half - start) / step, (half - start) / step
+    within = xp.abs(start) <= half  # a coordinate that does not change is inside its slab or never
+    lo = xp.where(moving, xp.minimum(a, b), xp.where(within, -xp.inf, xp.inf))
+    hi = xp.where(moving, xp.maximum(a, b), xp.where(within, xp.inf, -xp.inf))
+    return xp.maximum(xp.max(lo, axis=-1), 0.0) <= xp.minimum(xp.min(hi, axis=-1), 1.0)
 
 
 class CollisionMonitor:
@@ -75,6 +146,7 @@ class CollisionMonitor:
         self.times = np.arange(1, round(config.horizon / config.time_step) + 1) * config.time_step
         self.user_distance = config.user_distance or user_distance
         self.fractions = np.linspace(1.0, 0.0, config.user_steps + 1)
+        self.turns = config.turns()
 
     def points(self, ranges: np.ndarray, command: np.ndarray) -> np.ndarray:
         """Points (P, 2) of the monitor's own rays (``ranges``) the sweep of ``command`` could reach."""
@@ -88,11 +160,8 @@ class CollisionMonitor:
     @staticmethod
     def _inside(poses: np.ndarray, points: np.ndarray, half: np.ndarray) -> np.ndarray:
         """(T, P): point p inside the rectangle of half-sizes ``half`` at pose t."""
-        c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
-        dx = points[None, :, 0] - poses[:, 0:1]
-        dy = points[None, :, 1] - poses[:, 1:2]
-        qx, qy = c * dx + s * dy, -s * dx + c * dy
-        return (np.abs(qx) <= half[0]) & (np.abs(qy) <= half[1])
+        q = _local(poses, points)
+        return (np.abs(q[..., 0]) <= half[0]) & (np.abs(q[..., 1]) <= half[1])
 
     def obstacle_scale(self, command: np.ndarray, points: np.ndarray) -> float:
         """The largest s in [0, 1] whose sweep hits no new scan point."""
@@ -101,16 +170,54 @@ class CollisionMonitor:
         origin = np.zeros((1, 3))
         in_body = self._inside(origin, points, self.body)[0]
         in_margin = self._inside(origin, points, self.half)[0] & ~in_body
-        outside = ~in_body & ~in_margin
-        if not (in_margin.any() or outside.any()):
+        if in_body.all():
             return 1.0
-        poses = arc(command, self.times)
-        hit = self._inside(poses, points[outside], self.half).any(axis=1)
-        hit |= self._inside(poses, points[in_margin], self.body).any(axis=1)
-        if not hit.any():
-            return 1.0
-        first = int(np.argmax(hit))  # the first colliding sample; the one before it is clear
-        return first * self.config.time_step / self.config.horizon
+        hx = np.where(in_margin, self.body[0], self.half[0])  # (P,): the box each point must stay out of
+        hy = np.where(in_margin, self.body[1], self.half[1])
+        px, py = points[:, 0], points[:, 1]  # each point one sample earlier, in the base's frame
+        chunk = 10  # samples swept at a time: a blocked sweep (most of them) stops early
+        for lo in range(0, len(self.times), chunk):
+            poses = arc(command, self.times[lo : lo + chunk])
+            c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
+            dx, dy = points[None, :, 0] - poses[:, 0:1], points[None, :, 1] - poses[:, 1:2]
+            qx, qy = c * dx + s * dy, -s * dx + c * dy  # (t, P): the points in each sample's frame
+            bx, by = np.concatenate([px[None], qx[:-1]]), np.concatenate([py[None], qy[:-1]])
+            # only a segment whose bounding box meets the box can meet it: the slab test runs on those
+            near = (np.minimum(bx, qx) <= hx) & (np.maximum(bx, qx) >= -hx)
+            near &= (np.minimum(by, qy) <= hy) & (np.maximum(by, qy) >= -hy) & ~in_body
+            t, p = np.nonzero(near)
+            start, end = np.stack([bx[t, p], by[t, p]], -1), np.stack([qx[t, p], qy[t, p]], -1)
+            hit = t[segment_meets_box(start, end, np.stack([hx[p], hy[p]], -1))]
+            if len(hit):  # the first colliding step; the sample before it is clear
+                return (lo + int(hit.min())) * self.config.time_step / self.config.horizon
+            px, py = qx[-1], qy[-1]
+        return 1.0
+
+    def slide(self, command: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, float]:
+        """(candidate, its clear factor): the command and :meth:`obstacle_scale` unless that blocks it,
+        else the scaled candidate closest to the command (see the module docstring)."""
+        s0 = self.obstacle_scale(command, points)
+        if s0 == 1.0 or len(self.turns) == 1:
+            return command, s0
+        cands = np.stack(candidates(command, self.turns), -1)
+        r = self.reach_radius
+        # a candidate whose cost cannot beat the best so far even unblocked is not swept (exact: a
+        # later candidate wins only when strictly better)
+        speed2, turn2 = command[0] ** 2 + command[1] ** 2, (r * command[2]) ** 2
+        c, keep = self.turns[:, 0], self.turns[:, 2]
+        denominator = speed2 + turn2 * keep  # the scale that minimises each candidate's cost
+        ideal = np.clip((speed2 * c + turn2 * keep) / np.where(denominator > 0, denominator, 1.0), 0, 1)
+        floor = change(command, self.turns, ideal, r) - 1e-9 * (speed2 + turn2)
+        k, scale = 0, s0
+        cost = change(command, self.turns[:1], np.array([s0]), r)[0]
+        for j in range(1, len(cands)):
+            if floor[j] >= cost:
+                continue
+            sj = self.obstacle_scale(cands[j], points)
+            cj = change(command, self.turns[j : j + 1], np.array([sj]), r)[0]
+            if cj < cost:
+                k, scale, cost = j, sj, cj
+        return cands[k], float(scale)
 
     def user_scale(
         self, command: np.ndarray, upper: float, users: np.ndarray, velocities: np.ndarray
@@ -140,7 +247,8 @@ class CollisionMonitor:
             points = self.points(ranges, command)
         else:
             points = scan[np.linalg.norm(scan, axis=1) < self._reach(command)]
-        s_obstacle = self.obstacle_scale(command, points)
-        s = self.user_scale(command, s_obstacle, users, velocities)
-        reason = "user" if s < s_obstacle else ("obstacle" if s_obstacle < 1.0 else None)
-        return command * s, reason
+        chosen, s_obstacle = self.slide(command, points)
+        s = self.user_scale(chosen, s_obstacle, users, velocities)
+        changed = s_obstacle < 1.0 or chosen is not command
+        reason = "user" if s < s_obstacle else ("obstacle" if changed else None)
+        return chosen * s, reason

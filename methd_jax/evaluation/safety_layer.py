@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from methd_jax.deploy.safety import SafetyConfig
+from methd_jax.deploy.safety import SafetyConfig, candidates, change, segment_meets_box
 from methd_jax.geometry import KAIROS, ray_angles, to_local
 
 
@@ -54,10 +54,35 @@ def obstacle_scale(command: jax.Array, ranges: jax.Array, horizon: float, time_s
     in_margin = jnp.all(jnp.abs(pts) <= half, -1) & ~in_body
     steps = max(1, round(horizon / time_step))
     poses = arc(command, time_step * jnp.arange(1, steps + 1))
-    local = jnp.abs(jax.vmap(to_local, (0, None))(poses, pts))  # (T, P, 2), once for both boxes
-    hit = jnp.any(jnp.all(local <= half, -1) & ~in_body & ~in_margin, axis=1)
-    hit |= jnp.any(jnp.all(local <= body, -1) & in_margin, axis=1)
+    local = jax.vmap(to_local, (0, None))(poses, pts)  # (T, P, 2)
+    before = jnp.concatenate([pts[None], local[:-1]])  # where each point was one sample earlier
+    hit = jnp.any(segment_meets_box(before, local, half, jnp) & ~in_body & ~in_margin, axis=1)
+    hit |= jnp.any(segment_meets_box(before, local, body, jnp) & in_margin, axis=1)
     return jnp.where(jnp.any(hit), jnp.argmax(hit) / steps, 1.0)
+
+
+def slide(command: jax.Array, ranges: jax.Array, config: SafetyConfig) -> tuple[jax.Array, jax.Array]:
+    """(candidate, its clear factor) as :meth:`methd_jax.deploy.safety.CollisionMonitor.slide`: the
+    command and :func:`obstacle_scale` unless that blocks it, else the candidate of
+    :meth:`SafetyConfig.turns`, scaled to its own clear factor, closest to the command."""
+    turns = config.turns()
+
+    def scale(c):
+        return obstacle_scale(c, ranges, config.horizon, config.time_step, config.margin)
+
+    s0 = scale(command)
+    if len(turns) == 1:
+        return command, s0
+    radius = float(np.hypot(0.5 * KAIROS.length + config.margin, 0.5 * KAIROS.width + config.margin))
+    t = jnp.asarray(turns, jnp.float32)
+
+    def search():  # the neighbours' sweeps only when the command's own is blocked
+        cands = jnp.stack(candidates(command, t), -1)
+        scales = jnp.concatenate([s0[None], jax.vmap(scale)(cands[1:])])
+        k = jnp.argmin(change(command, t, scales, radius))
+        return cands[k], scales[k]
+
+    return jax.lax.cond(s0 < 1.0, search, lambda: (command, s0))
 
 
 def user_scale(
@@ -96,6 +121,6 @@ def filter_command(
     config = config or SafetyConfig()
     if not config.enabled:
         return command
-    s = obstacle_scale(command, ranges, config.horizon, config.time_step, config.margin)
-    s = user_scale(command, s, users, velocities, present, user_distance, config)
-    return jnp.where(jnp.any(command != 0), command * s, command)
+    chosen, s = slide(command, ranges, config)
+    s = user_scale(chosen, s, users, velocities, present, user_distance, config)
+    return jnp.where(jnp.any(command != 0), chosen * s, command)
