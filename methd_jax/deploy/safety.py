@@ -106,12 +106,12 @@ def arc(command: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.stack([(vx * s + vy * (c - 1.0)) / wz, (vx * (1.0 - c) + vy * s) / wz, th], -1)
 
 
-def _local(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(T, P, 2): ``points`` (P, 2) in the frame of each pose (T, 3)."""
+def _local(poses: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y), each (T, P): ``points`` (P, 2) in the frame of each pose (T, 3)."""
     c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
     dx = points[None, :, 0] - poses[:, 0:1]
     dy = points[None, :, 1] - poses[:, 1:2]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy], -1)
+    return c * dx + s * dy, -s * dx + c * dy
 
 
 def segment_meets_box(start, end, half, xp=np):
@@ -160,8 +160,8 @@ class CollisionMonitor:
     @staticmethod
     def _inside(poses: np.ndarray, points: np.ndarray, half: np.ndarray) -> np.ndarray:
         """(T, P): point p inside the rectangle of half-sizes ``half`` at pose t."""
-        q = _local(poses, points)
-        return (np.abs(q[..., 0]) <= half[0]) & (np.abs(q[..., 1]) <= half[1])
+        qx, qy = _local(poses, points)
+        return (np.abs(qx) <= half[0]) & (np.abs(qy) <= half[1])
 
     def obstacle_scale(self, command: np.ndarray, points: np.ndarray) -> float:
         """The largest s in [0, 1] whose sweep hits no new scan point."""
@@ -177,10 +177,7 @@ class CollisionMonitor:
         px, py = points[:, 0], points[:, 1]  # each point one sample earlier, in the base's frame
         chunk = 10  # samples swept at a time: a blocked sweep (most of them) stops early
         for lo in range(0, len(self.times), chunk):
-            poses = arc(command, self.times[lo : lo + chunk])
-            c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
-            dx, dy = points[None, :, 0] - poses[:, 0:1], points[None, :, 1] - poses[:, 1:2]
-            qx, qy = c * dx + s * dy, -s * dx + c * dy  # (t, P): the points in each sample's frame
+            qx, qy = _local(arc(command, self.times[lo : lo + chunk]), points)  # (t, P) each
             bx, by = np.concatenate([px[None], qx[:-1]]), np.concatenate([py[None], qy[:-1]])
             # only a segment whose bounding box meets the box can meet it: the slab test runs on those
             near = (np.minimum(bx, qx) <= hx) & (np.maximum(bx, qx) >= -hx)
@@ -249,6 +246,6 @@ class CollisionMonitor:
             points = scan[np.linalg.norm(scan, axis=1) < self._reach(command)]
         chosen, s_obstacle = self.slide(command, points)
         s = self.user_scale(chosen, s_obstacle, users, velocities)
-        changed = s_obstacle < 1.0 or chosen is not command
+        changed = s_obstacle < 1.0 or not np.array_equal(chosen, command)
         reason = "user" if s < s_obstacle else ("obstacle" if changed else None)
         return chosen * s, reason
