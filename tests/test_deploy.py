@@ -218,6 +218,39 @@ def _newly_hits(command, ranges, horizon=1.0, dt=0.001) -> bool:
     return bool(np.any(inside[1:] & ~inside[:1]))
 
 
+def test_arc_integrates_the_twist_for_one_command_or_many():
+    rng = np.random.default_rng(1)
+    commands = np.vstack([rng.uniform(-2, 2, (5, 3)), [[1.0, -0.5, 0.0]]])  # the last drives straight
+    t = np.linspace(0.1, 1.0, 10)
+    many = arc(commands, t)
+    assert many.shape == (6, 10, 3)
+    n = 100_000  # midpoint rule on the world-frame velocity: error ~ 1e-10 m
+    mid = (np.arange(n) + 0.5) / n
+    at = np.round(t * n).astype(int) - 1
+    for command, poses in zip(commands, many, strict=True):
+        assert np.array_equal(arc(command, t), poses)
+        th = command[2] * mid
+        vx = command[0] * np.cos(th) - command[1] * np.sin(th)
+        vy = command[0] * np.sin(th) + command[1] * np.cos(th)
+        np.testing.assert_allclose(poses[:, 0], np.cumsum(vx)[at] / n, atol=1e-8)
+        np.testing.assert_allclose(poses[:, 1], np.cumsum(vy)[at] / n, atol=1e-8)
+        np.testing.assert_allclose(poses[:, 2], command[2] * t, atol=1e-12)
+
+
+def test_obstacle_scales_of_many_commands_are_each_ones_own():
+    m = _monitor()
+    rng = np.random.default_rng(2)
+    blocked = []
+    for _ in range(20):
+        ranges = np.where(rng.random(720) < 0.02, rng.uniform(0.8, 3.0, 720), np.inf)
+        commands = rng.uniform(-1, 1, (10, 3)) * np.array([3.0, 3.0, 2.0]) * rng.random()
+        points = m.points(ranges, np.array([3.0, 3.0, 2.0]))
+        together = m.obstacle_scales(commands, points)
+        assert together.tolist() == [m.obstacle_scale(c, points) for c in commands]
+        blocked += list(together < 1.0)
+    assert 0.2 < np.mean(blocked) < 0.8  # blocked and free ones, swept together
+
+
 def test_safety_leaves_free_space_alone():
     m = _monitor()
     rng = np.random.default_rng(0)

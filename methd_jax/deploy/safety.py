@@ -97,20 +97,28 @@ def change(command, turns, scales, radius):
 
 def arc(command: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Poses (x, y, yaw) ``(..., 3)`` reached from the origin after ``t`` s of a constant robot-frame
-    twist (vx, vy, wz)."""
-    vx, vy, wz = command
+    twist (vx, vy, wz); ``command`` (3,) gives ``t.shape + (3,)``, ``command`` (K, 3) gives
+    ``(K,) + t.shape + (3,)``."""
+    command = np.asarray(command, np.float64)
+    if command.ndim == 1:
+        return arc(command[None], t)[0]
+    t = np.asarray(t, np.float64)
+    shape = (len(command),) + (1,) * t.ndim
+    vx, vy, wz = (command[:, i].reshape(shape) for i in range(3))
     th = wz * t
-    if abs(wz) < 1e-9:
-        return np.stack([vx * t, vy * t, th], -1)
+    straight = np.abs(wz) < 1e-9
+    w = np.where(straight, 1.0, wz)
     s, c = np.sin(th), np.cos(th)
-    return np.stack([(vx * s + vy * (c - 1.0)) / wz, (vx * (1.0 - c) + vy * s) / wz, th], -1)
+    x = np.where(straight, vx * t, (vx * s + vy * (c - 1.0)) / w)
+    y = np.where(straight, vy * t, (vx * (1.0 - c) + vy * s) / w)
+    return np.stack(np.broadcast_arrays(x, y, th), -1)
 
 
 def _local(poses: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(x, y), each (T, P): ``points`` (P, 2) in the frame of each pose (T, 3)."""
-    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
-    dx = points[None, :, 0] - poses[:, 0:1]
-    dy = points[None, :, 1] - poses[:, 1:2]
+    """(x, y), each (..., P): ``points`` (P, 2) in the frame of each pose (..., 3)."""
+    c, s = np.cos(poses[..., 2:3]), np.sin(poses[..., 2:3])
+    dx = points[:, 0] - poses[..., 0:1]
+    dy = points[:, 1] - poses[..., 1:2]
     return c * dx + s * dy, -s * dx + c * dy
 
 
@@ -165,30 +173,44 @@ class CollisionMonitor:
 
     def obstacle_scale(self, command: np.ndarray, points: np.ndarray) -> float:
         """The largest s in [0, 1] whose sweep hits no new scan point."""
-        if len(points) == 0:
-            return 1.0
+        return float(self.obstacle_scales(np.asarray(command)[None], points)[0])
+
+    def obstacle_scales(self, commands: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """:meth:`obstacle_scale` of each of ``commands`` (K, 3), swept together: (K,)."""
+        scales = np.ones(len(commands))
+        if len(points) == 0 or len(commands) == 0:
+            return scales
         origin = np.zeros((1, 3))
         in_body = self._inside(origin, points, self.body)[0]
         in_margin = self._inside(origin, points, self.half)[0] & ~in_body
-        if in_body.all():
-            return 1.0
+        points, in_margin = points[~in_body], in_margin[~in_body]
+        if len(points) == 0:
+            return scales
         hx = np.where(in_margin, self.body[0], self.half[0])  # (P,): the box each point must stay out of
         hy = np.where(in_margin, self.body[1], self.half[1])
-        px, py = points[:, 0], points[:, 1]  # each point one sample earlier, in the base's frame
+        todo = np.arange(len(commands))  # the candidates not yet blocked
+        px = np.broadcast_to(points[:, 0], (len(todo), len(points)))  # each point one sample earlier
+        py = np.broadcast_to(points[:, 1], (len(todo), len(points)))
         chunk = 10  # samples swept at a time: a blocked sweep (most of them) stops early
         for lo in range(0, len(self.times), chunk):
-            qx, qy = _local(arc(command, self.times[lo : lo + chunk]), points)  # (t, P) each
-            bx, by = np.concatenate([px[None], qx[:-1]]), np.concatenate([py[None], qy[:-1]])
+            qx, qy = _local(arc(commands[todo], self.times[lo : lo + chunk]), points)  # (k, t, P) each
+            bx = np.concatenate([px[:, None], qx[:, :-1]], 1)
+            by = np.concatenate([py[:, None], qy[:, :-1]], 1)
             # only a segment whose bounding box meets the box can meet it: the slab test runs on those
             near = (np.minimum(bx, qx) <= hx) & (np.maximum(bx, qx) >= -hx)
-            near &= (np.minimum(by, qy) <= hy) & (np.maximum(by, qy) >= -hy) & ~in_body
-            t, p = np.nonzero(near)
-            start, end = np.stack([bx[t, p], by[t, p]], -1), np.stack([qx[t, p], qy[t, p]], -1)
-            hit = t[segment_meets_box(start, end, np.stack([hx[p], hy[p]], -1))]
-            if len(hit):  # the first colliding step; the sample before it is clear
-                return (lo + int(hit.min())) * self.config.time_step / self.config.horizon
-            px, py = qx[-1], qy[-1]
-        return 1.0
+            near &= (np.minimum(by, qy) <= hy) & (np.maximum(by, qy) >= -hy)
+            k, t, p = np.nonzero(near)
+            start, end = np.stack([bx[k, t, p], by[k, t, p]], -1), np.stack([qx[k, t, p], qy[k, t, p]], -1)
+            hit = segment_meets_box(start, end, np.stack([hx[p], hy[p]], -1))
+            first = np.full(len(todo), len(self.times))
+            np.minimum.at(first, k[hit], t[hit])  # each candidate's first colliding step in the chunk
+            blocked = first < len(self.times)
+            # the sample before the first colliding step is clear
+            scales[todo[blocked]] = (lo + first[blocked]) * self.config.time_step / self.config.horizon
+            todo, px, py = todo[~blocked], qx[~blocked, -1], qy[~blocked, -1]
+            if len(todo) == 0:
+                break
+        return scales
 
     def slide(self, command: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, float]:
         """(candidate, its clear factor): the command and :meth:`obstacle_scale` unless that blocks it,
@@ -198,23 +220,22 @@ class CollisionMonitor:
             return command, s0
         cands = np.stack(candidates(command, self.turns), -1)
         r = self.reach_radius
-        # a candidate whose cost cannot beat the best so far even unblocked is not swept (exact: a
-        # later candidate wins only when strictly better)
+        # a candidate whose cost cannot beat the command's own scaled cost even unblocked is not
+        # swept (exact: a later candidate wins only when strictly better)
         speed2, turn2 = command[0] ** 2 + command[1] ** 2, (r * command[2]) ** 2
         c, keep = self.turns[:, 0], self.turns[:, 2]
         denominator = speed2 + turn2 * keep  # the scale that minimises each candidate's cost
         ideal = np.clip((speed2 * c + turn2 * keep) / np.where(denominator > 0, denominator, 1.0), 0, 1)
         floor = change(command, self.turns, ideal, r) - 1e-9 * (speed2 + turn2)
-        k, scale = 0, s0
-        cost = change(command, self.turns[:1], np.array([s0]), r)[0]
-        for j in range(1, len(cands)):
-            if floor[j] >= cost:
-                continue
-            sj = self.obstacle_scale(cands[j], points)
-            cj = change(command, self.turns[j : j + 1], np.array([sj]), r)[0]
-            if cj < cost:
-                k, scale, cost = j, sj, cj
-        return cands[k], float(scale)
+        scales = np.full(len(cands), s0)
+        cost = np.full(len(cands), np.inf)
+        cost[0] = change(command, self.turns[:1], np.array([s0]), r)[0]
+        todo = np.flatnonzero(floor < cost[0])
+        todo = todo[todo > 0]
+        scales[todo] = self.obstacle_scales(cands[todo], points)
+        cost[todo] = change(command, self.turns[todo], scales[todo], r)
+        k = int(np.argmin(cost))  # ties to the earlier candidate
+        return cands[k], float(scales[k])
 
     def user_scale(
         self, command: np.ndarray, upper: float, users: np.ndarray, velocities: np.ndarray
