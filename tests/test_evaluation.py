@@ -365,6 +365,41 @@ def test_su_baselines_on_the_synthetic_test_set(synthetic_test_bank):
     assert static["collisions_obstacle"] == 0 and heuristic["collisions_obstacle"] == 0
 
 
+def test_procedural_counts_contacts_not_the_training_margin():
+    """``--procedural``'s obstacle collisions are footprint contacts (the lab's test), not training's
+    stricter rays-plus-margin test: a base that stops 0.3 m short of what is ahead never collides,
+    though a 0.4 m training margin would have ended every episode that reached a wall."""
+    import dataclasses
+
+    from envs import tasks
+    from methd_jax.geometry import KAIROS
+    from train.evaluate import procedural_outcomes
+
+    base = tasks.get("su").config
+    trained = dataclasses.replace(
+        base,
+        motion="sample",
+        num_rays=90,
+        time_limit=30.0,
+        cooldown=1000.0,  # no success: each episode drives until it collides or times out
+        safety=dataclasses.replace(base.safety, collision_margin=0.4),
+    )
+    front = np.r_[0:12, 79:90]  # rays within 44 degrees of straight ahead: the front face, its corners
+    ahead = jnp.asarray(KAIROS.ray_geometry(90)[0][front])
+
+    def forward(obs):  # 0.75 m/s straight ahead for 30 s: a wall of the <= 14 m room at the latest
+        return jnp.array([0.25, 0.0, 0.0])
+
+    def careful(obs):
+        stop = jnp.any(obs[front] < ahead + 0.3)
+        return jnp.where(stop, 0.0, jnp.array([0.25, 0.0, 0.0]))
+
+    rammed = procedural_outcomes(trained, forward, 4, seed=3)
+    assert rammed["obstacle"] >= 0.5 and rammed["obstacle"] + rammed["user"] == 1.0
+    stopped = procedural_outcomes(trained, careful, 4, seed=3)
+    assert stopped["obstacle"] == 0.0 and stopped["timeout"] >= 0.5
+
+
 # -- the command line ----------------------------------------------------------------------------
 
 

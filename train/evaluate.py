@@ -24,13 +24,15 @@ from envs import guide as guide_env
 from envs import tasks
 from envs.evaluation import Policy
 from envs.nav import load_bank
-from methd_jax import floors
+from methd_jax import floors, lidar
+from methd_jax import robot as robot_lib
 from methd_jax.cli import OneLineParser
 from methd_jax.control import CONTROL_HZ
 from methd_jax.deploy.safety import SafetyConfig
 from methd_jax.evaluation import engine as eng
 from methd_jax.evaluation import methods, metrics, plots, stats
 from methd_jax.floors import FloorConfig
+from methd_jax.geometry import KAIROS
 from methd_jax.motion import MotionDataError
 from methd_jax.motion.dataset import progress_bar
 from methd_jax.motion.features import HipConfig
@@ -76,26 +78,47 @@ def procedural(
     held-out test trajectories, each episode run to its end as in training (collision, success or
     the time limit). ``floor``: the floor distribution (default: the policy's own training floors);
     the floors come from ``seed``'s keys, which training never draws (it splits its own seed's key).
-    Returns the share of episodes that ended in each way and their count."""
+    Returns the share of episodes that ended in each way and their count.
+
+    An obstacle collision is the lab evaluation's: the footprint against a dense scan of
+    ``EngineConfig.collision_rays`` rays, no margin. Training's own test (the policy's few rays plus
+    its ``collision_margin``) is stricter by design and would count near misses."""
     policy = _load(run, "su", "--procedural takes a su policy")
     trained = tasks.get("su").config_from(policy.manifest["env_config"])
+    return procedural_outcomes(trained, policy, episodes, seed=seed, floor=floor)
+
+
+def procedural_outcomes(
+    trained, policy, episodes: int, *, seed: int = 1, floor: FloorConfig | None = None
+) -> dict[str, float]:
+    """:func:`procedural` for a policy ``obs -> action`` trained with the ``su`` config ``trained``."""
     config = dataclasses.replace(
-        trained, lab=False, lab_fraction=0.0, split="test", floor=floor or trained.floor
+        trained,
+        lab=False,
+        lab_fraction=0.0,
+        split="test",
+        floor=floor or trained.floor,
+        safety=dataclasses.replace(trained.safety, collision_margin=0.0),
     )
     env = tasks.get("su").build(config)
     steps = round(config.time_limit * CONTROL_HZ)
+    rays = eng.EngineConfig().collision_rays
+    boundary = jnp.asarray(KAIROS.ray_geometry(rays)[0])
 
     outcomes = ("obstacle", "user", "success", "timeout")
 
     def one(state, ended, outcome):
         """One step of one episode; ``outcome`` keeps how it ended the first time it did."""
         state = env.step(state, jnp.clip(policy(state.obs), -1.0, 1.0))
+        w = state.pipeline_state
+        contact = jnp.any(lidar.scan(w.floor, robot_lib.pose(w.robot), num_rays=rays) < boundary)
         m = state.metrics
         now = jnp.stack(
             [m["collision_obstacle"], m["collision_user"], m["success"], state.info["truncation"]]
         )
-        first = (state.done > 0) & ~ended
-        return state, ended | (state.done > 0), jnp.where(first, now, outcome)
+        now = jnp.where(contact, jnp.array([1.0, 0.0, 0.0, 0.0]), now)
+        over = (state.done > 0) | contact
+        return state, ended | over, jnp.where(over & ~ended, now, outcome)
 
     @jax.jit
     def run_all(keys):
