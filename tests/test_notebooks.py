@@ -22,7 +22,16 @@ def test_the_four_notebooks_of_the_design_are_there():
         )
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+# Training one (02) and evaluating through every engine (04) take 2-3 minutes each on CI's two cores;
+# their code paths run in the default suite elsewhere (test_run_cli, test_evaluation), so only the
+# slow set runs them as notebooks.
+HEAVY = {"02_train_su", "04_evaluate"}
+
+
+@pytest.mark.parametrize(
+    "path",
+    [pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if p.stem in HEAVY else []) for p in NOTEBOOKS],
+)
 def test_notebook_runs(path, tmp_path):
     book = nbformat.read(path, as_version=4)
     # the kernel writes its GIFs and evaluation folders into tmp_path, not into notebooks/

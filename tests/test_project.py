@@ -43,8 +43,9 @@ def test_readme_has_exactly_two_setup_commands_and_ci_runs_the_test_one():
     assert ci.stdout.strip() == commands[1]
 
 
+@pytest.mark.slow  # six minutes of timed repeats on two cores: a benchmark, run deliberately
 def test_bench_quick_checks_ratios_against_the_peers(tmp_path):
-    """``python -m train.bench --quick``: the CI check that our caster and trainer beat their peers."""
+    """``python -m train.bench --quick``: our caster and trainer beat their peers."""
     out = tmp_path / "bench.json"
     run = subprocess.run(
         [sys.executable, "-m", "train.bench", "--quick", "--json", str(out)],
