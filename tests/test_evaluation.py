@@ -417,8 +417,9 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys, full):
     run_dir = tmp_path / "su"
     assert run.main(["quick", *TINY_RUN, "timesteps=8", "--out", str(run_dir), "--quiet"]) == 0
     out = tmp_path / "eval"
-    # MU and the Heuristic are left out here (notebook 04 runs the CLI's MU Static, the baselines
-    # test the Heuristic): engines fewer to compile
+    # MU and the Heuristic are left out here (test_pretrained runs MU Static beside the shipped pair,
+    # the baselines test the Heuristic, notebook 04 runs both through the CLI with -m slow): engines
+    # fewer to compile
     args = ["--motion", "sample", "--su", str(run_dir), "--no-mu", "--no-heuristic", "--out", str(out)]
     extra = ["--procedural", "6"] if full else ["--no-safety"]
     assert evaluate.main([*args, "--quiet", *extra]) == 0
