@@ -23,8 +23,8 @@ def test_the_four_notebooks_of_the_design_are_there():
 
 
 # Training one (02), the multi-user episodes (03) and evaluating through every engine (04) take 1-3
-# minutes each on CI's two cores; their code paths run in the default suite elsewhere (test_run_cli,
-# test_evaluation, test_pretrained), so only the slow set runs them as notebooks.
+# minutes each on a 2-core developer machine; their code paths run in the default suite elsewhere
+# (test_run_cli, test_evaluation, test_pretrained), so only the slow set runs them as notebooks.
 HEAVY = {"02_train_su", "03_multi_user", "04_evaluate"}
 
 
