@@ -146,6 +146,44 @@ def test_guard_agrees_with_the_deployment_monitor():
     np.testing.assert_allclose(ours, theirs, atol=1e-4)
 
 
+def test_the_sweep_skips_only_points_beyond_its_reach():
+    # the twin sweeps only the nearest scan points its command can reach; the numpy monitor given
+    # every point (no pruning at all) is the reference, on scenes with a band of points just inside
+    # and just beyond that reach, fast and spinning commands among them
+    from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
+    from methd_jax.evaluation import safety_layer
+    from methd_jax.geometry import KAIROS, ray_angles
+
+    config = SafetyConfig()
+    monitor = CollisionMonitor(KAIROS.length, KAIROS.width, 720, 1.37, config)
+    rng = np.random.default_rng(4)
+    n = 200
+    commands = rng.uniform([-3, -3, -2], [3, 3, 2], (n, 3)).astype(np.float32)
+    commands[:40] *= 0.2  # slow commands reach few points
+    reach = np.asarray(jax.vmap(lambda c: safety_layer.reach(c, config.horizon, config.margin))(commands))
+    ranges = rng.uniform(0.5, 9.0, (n, 720)).astype(np.float32)
+    ranges[rng.uniform(size=ranges.shape) > 0.02] = np.inf
+    for i, start in enumerate(rng.integers(0, 720, n)):  # a wall segment straddling the reach
+        band = (start + np.arange(60)) % 720
+        ranges[i, band] = reach[i] + rng.uniform(-0.1, 0.3, 60)
+    scale = jax.jit(
+        jax.vmap(
+            lambda c, r: safety_layer.obstacle_scale(c, r, config.horizon, config.time_step, config.margin)
+        )
+    )
+    ours = np.asarray(scale(jnp.asarray(commands), jnp.asarray(ranges)))
+    a = ray_angles(720)
+    theirs = []
+    for c, r in zip(commands, ranges, strict=True):
+        finite = np.isfinite(r)
+        every = r[finite, None] * np.stack([np.cos(a), np.sin(a)], -1)[finite]
+        theirs.append(monitor.obstacle_scale(c.astype(np.float64), every))
+    assert 30 < np.sum(np.asarray(theirs) < 1.0) < n - 30  # both outcomes
+    np.testing.assert_allclose(ours, theirs, atol=1e-6)
+    within = ranges <= reach[:, None] + 0.01
+    assert np.median(within.sum(1)) < 360  # most scenes sweep under half of the points
+
+
 # -- behaviour engine ----------------------------------------------------------------------------
 
 
@@ -410,12 +448,17 @@ def test_procedural_counts_contacts_not_the_training_margin():
     [pytest.param(False, id="lean"), pytest.param(True, id="full", marks=pytest.mark.slow)],
 )
 def test_cli_baselines_and_a_trained_policy(tmp_path, capsys, full):
-    from conftest import TINY_RUN
+    from conftest import export_random_policy
 
-    from train import evaluate, run
+    import envs
+    import networks
+    from train import evaluate
 
+    # what the CLI needs of a run is its exported policy folder (a run folder holds it as policy/);
+    # a random-init one saves training's compilation, and the table's numbers are not under test
     run_dir = tmp_path / "su"
-    assert run.main(["quick", *TINY_RUN, "timesteps=8", "--out", str(run_dir), "--quiet"]) == 0
+    env = envs.make("su", motion="sample", split="all", num_rays=72)
+    export_random_policy(run_dir, env, "su", networks.ActorCritic(num_rays=72, hidden=(32, 32)), seed=0)
     out = tmp_path / "eval"
     # MU and the Heuristic are left out here (test_pretrained runs MU Static beside the shipped pair,
     # the baselines test the Heuristic, notebook 04 runs both through the CLI with -m slow): engines

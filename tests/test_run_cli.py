@@ -101,9 +101,15 @@ def test_presets_are_the_thesis_table():
 
 
 def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
+    from conftest import export_random_policy
+
+    import envs
+    import networks
+
+    # a run folder holding a GuideRL policy (random init: its training is tested in test_ppo)
     guide = tmp_path / "guide"
-    small = ["env.motion=sample", "hidden=16,16", "num_envs=8", "ppo.rollouts=4", "ppo.minibatches=2"]
-    assert main(["guide", *small, "ppo.epochs=1", "timesteps=4", "--out", str(guide), "--quiet"]) == 0
+    env = envs.make("guide", motion="sample")
+    export_random_policy(guide, env, "guide", networks.GuideActorCritic(hidden=(16, 16)), seed=2)
     nav = tmp_path / "nav"
     args = ["nav", *TINY, f"guide_run={guide}", "--out", str(nav), "--quiet"]
     assert main(args) == 0

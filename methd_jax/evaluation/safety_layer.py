@@ -35,6 +35,29 @@ def arc(command: jax.Array, t: jax.Array) -> jax.Array:
     return jnp.stack([x, y, th], -1)
 
 
+CHUNK = 24
+"""Scan points swept at a time: the nearest first, only as many chunks as the command can reach."""
+
+
+def sorted_points(ranges: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """A full-circle scan's ranges (rays as :func:`methd_jax.geometry.ray_angles`) as points in the
+    robot frame, nearest first: (ranges (R,), points (R, 2)); no return counts as 1 km away."""
+    a = ray_angles(ranges.shape[0])  # numpy: constants in the compiled step
+    directions = np.stack([np.cos(a), np.sin(a)], -1).astype(np.float32)
+    far = jnp.where(jnp.isfinite(ranges), ranges, 1e3)
+    pts = far[:, None] * directions
+    order = jnp.argsort(far)
+    return far[order], pts[order]
+
+
+def reach(command: jax.Array, horizon: float, margin: float) -> jax.Array:
+    """How far from the base's centre the footprint plus ``margin`` can get in ``horizon`` s of
+    ``command``: its half-diagonal plus the centre's path plus the corners' turn (the deployment
+    monitor's bound)."""
+    radius = float(np.hypot(0.5 * KAIROS.length + margin, 0.5 * KAIROS.width + margin))
+    return radius + (jnp.hypot(command[0], command[1]) + jnp.abs(command[2]) * radius) * horizon
+
+
 def obstacle_scale(command: jax.Array, ranges: jax.Array, horizon: float, time_step: float, margin: float):
     """The largest s in [0, 1] whose sweep of ``command`` over ``horizon`` hits no new scan point.
 
@@ -45,19 +68,37 @@ def obstacle_scale(command: jax.Array, ranges: jax.Array, horizon: float, time_s
     points inside the margin are checked against the footprint itself, so the base may back away
     from a close wall but not drive into it.
     """
-    a = ray_angles(ranges.shape[0])  # numpy: constants in the compiled step
-    directions = np.stack([np.cos(a), np.sin(a)], -1).astype(np.float32)
-    pts = jnp.where(jnp.isfinite(ranges), ranges, 1e3)[:, None] * directions
+    return sweep(command, *sorted_points(ranges), horizon, time_step, margin)
+
+
+def sweep(command, ranges, points, horizon: float, time_step: float, margin: float) -> jax.Array:
+    """:func:`obstacle_scale` on the scan of :func:`sorted_points`. Only the points within the
+    sweep's :func:`reach` can stop it, so only the chunks of the nearest points that hold them are
+    swept: the same factor as sweeping every point, at the cost of the points nearby."""
     body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
     half = body + margin
-    in_body = jnp.all(jnp.abs(pts) <= body, -1)
-    in_margin = jnp.all(jnp.abs(pts) <= half, -1) & ~in_body
     steps = max(1, round(horizon / time_step))
     poses = arc(command, time_step * jnp.arange(1, steps + 1))
-    local = jax.vmap(to_local, (0, None))(poses, pts)  # (T, P, 2)
-    before = jnp.concatenate([pts[None], local[:-1]])  # where each point was one sample earlier
-    hit = jnp.any(segment_meets_box(before, local, half, jnp) & ~in_body & ~in_margin, axis=1)
-    hit |= jnp.any(segment_meets_box(before, local, body, jnp) & in_margin, axis=1)
+    total = points.shape[0]
+    padded = -(-total // CHUNK) * CHUNK
+    points = jnp.concatenate([points, jnp.full((padded - total, 2), 1e3, points.dtype)])
+    needed = jnp.sum(ranges <= reach(command, horizon, margin) + 0.01)  # 1 cm for rounding
+    chunks = (needed + CHUNK - 1) // CHUNK
+
+    def hits(c):  # (T,) whether a point of chunk c is newly hit between samples
+        pts = jax.lax.dynamic_slice_in_dim(points, c * CHUNK, CHUNK)
+        valid = c * CHUNK + jnp.arange(CHUNK) < needed
+        in_body = jnp.all(jnp.abs(pts) <= body, -1)
+        in_margin = jnp.all(jnp.abs(pts) <= half, -1) & ~in_body
+        local = jax.vmap(to_local, (0, None))(poses, pts)  # (T, CHUNK, 2)
+        before = jnp.concatenate([pts[None], local[:-1]])  # where each point was one sample earlier
+        hit = segment_meets_box(before, local, half, jnp) & valid & ~in_body & ~in_margin
+        hit |= segment_meets_box(before, local, body, jnp) & valid & in_margin
+        return jnp.any(hit, axis=1)
+
+    _, hit = jax.lax.while_loop(
+        lambda ch: ch[0] < chunks, lambda ch: (ch[0] + 1, ch[1] | hits(ch[0])), (0, jnp.zeros(steps, bool))
+    )
     return jnp.where(jnp.any(hit), jnp.argmax(hit) / steps, 1.0)
 
 
@@ -67,8 +108,10 @@ def slide(command: jax.Array, ranges: jax.Array, config: SafetyConfig) -> tuple[
     :meth:`SafetyConfig.turns`, scaled to its own clear factor, closest to the command."""
     turns = config.turns()
 
+    near = sorted_points(ranges)  # the candidates turn the command's speed, so reach no farther
+
     def scale(c):
-        return obstacle_scale(c, ranges, config.horizon, config.time_step, config.margin)
+        return sweep(c, *near, config.horizon, config.time_step, config.margin)
 
     s0 = scale(command)
     if len(turns) == 1:
