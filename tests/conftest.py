@@ -29,11 +29,11 @@ if not _XLA_CACHE:
     atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
 os.environ.update(
     JAX_COMPILATION_CACHE_DIR=_XLA_CACHE,
-    JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1",
+    JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
     JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0",
 )
 jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 TINY_RUN = (
