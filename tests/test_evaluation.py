@@ -150,7 +150,7 @@ def test_the_sweep_skips_only_points_beyond_its_reach():
     # the twin sweeps only the nearest scan points its command can reach; the numpy monitor given
     # every point (no pruning at all) is the reference, on scenes with a band of points just inside
     # and just beyond that reach, fast and spinning commands among them
-    from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
+    from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig, reach
     from methd_jax.evaluation import safety_layer
     from methd_jax.geometry import KAIROS, ray_angles
 
@@ -160,12 +160,12 @@ def test_the_sweep_skips_only_points_beyond_its_reach():
     n = 200
     commands = rng.uniform([-3, -3, -2], [3, 3, 2], (n, 3)).astype(np.float32)
     commands[:40] *= 0.2  # slow commands reach few points
-    reach = np.asarray(jax.vmap(lambda c: safety_layer.reach(c, config.horizon, config.margin))(commands))
+    bound = np.array([reach(c, monitor.reach_radius, config.horizon) for c in commands.astype(np.float64)])
     ranges = rng.uniform(0.5, 9.0, (n, 720)).astype(np.float32)
     ranges[rng.uniform(size=ranges.shape) > 0.02] = np.inf
     for i, start in enumerate(rng.integers(0, 720, n)):  # a wall segment straddling the reach
         band = (start + np.arange(60)) % 720
-        ranges[i, band] = reach[i] + rng.uniform(-0.1, 0.3, 60)
+        ranges[i, band] = bound[i] + rng.uniform(-0.1, 0.3, 60)
     scale = jax.jit(
         jax.vmap(
             lambda c, r: safety_layer.obstacle_scale(c, r, config.horizon, config.time_step, config.margin)
@@ -180,7 +180,7 @@ def test_the_sweep_skips_only_points_beyond_its_reach():
         theirs.append(monitor.obstacle_scale(c.astype(np.float64), every))
     assert 30 < np.sum(np.asarray(theirs) < 1.0) < n - 30  # both outcomes
     np.testing.assert_allclose(ours, theirs, atol=1e-6)
-    within = ranges <= reach[:, None] + 0.01
+    within = ranges <= bound[:, None] + 0.01
     assert np.median(within.sum(1)) < 360  # most scenes sweep under half of the points
 
 

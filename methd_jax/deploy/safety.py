@@ -122,6 +122,13 @@ def _local(poses: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return c * dx + s * dy, -s * dx + c * dy
 
 
+def reach(command, radius: float, horizon: float, xp=np):
+    """How far from the base's centre a footprint of half-diagonal ``radius`` can get in ``horizon``
+    s of ``command``: the radius plus the centre's path plus the corners' turn (points beyond it
+    cannot stop the sweep); numpy, or JAX with ``xp=jax.numpy``."""
+    return radius + (xp.hypot(command[0], command[1]) + abs(command[2]) * radius) * horizon
+
+
 def segment_meets_box(start, end, half, xp=np):
     """(...): whether the segment ``start`` -> ``end`` (..., 2) meets the box |x| <= half[0],
     |y| <= half[1] (the slab test); numpy, or JAX with ``xp=jax.numpy``.
@@ -162,8 +169,7 @@ class CollisionMonitor:
         return ranges[near, None] * self.directions[near]
 
     def _reach(self, command: np.ndarray) -> float:
-        speed = np.hypot(command[0], command[1]) + abs(command[2]) * self.reach_radius
-        return self.reach_radius + speed * self.config.horizon
+        return reach(command, self.reach_radius, self.config.horizon)
 
     @staticmethod
     def _inside(poses: np.ndarray, points: np.ndarray, half: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from methd_jax.deploy.safety import SafetyConfig, candidates, change, segment_meets_box
+from methd_jax.deploy.safety import SafetyConfig, candidates, change, reach, segment_meets_box
 from methd_jax.geometry import KAIROS, ray_angles, to_local
 
 
@@ -41,21 +41,19 @@ CHUNK = 24
 
 def sorted_points(ranges: jax.Array) -> tuple[jax.Array, jax.Array]:
     """A full-circle scan's ranges (rays as :func:`methd_jax.geometry.ray_angles`) as points in the
-    robot frame, nearest first: (ranges (R,), points (R, 2)); no return counts as 1 km away."""
+    robot frame, nearest first and padded to whole chunks: (ranges (R',), points (R', 2)); no return
+    (and the padding) counts as 1 km away."""
     a = ray_angles(ranges.shape[0])  # numpy: constants in the compiled step
     directions = np.stack([np.cos(a), np.sin(a)], -1).astype(np.float32)
     far = jnp.where(jnp.isfinite(ranges), ranges, 1e3)
-    pts = far[:, None] * directions
     order = jnp.argsort(far)
-    return far[order], pts[order]
+    far, pts = far[order], (far[:, None] * directions)[order]
+    pad = -ranges.shape[0] % CHUNK
+    return jnp.pad(far, (0, pad), constant_values=1e3), jnp.pad(pts, ((0, pad), (0, 0)), constant_values=1e3)
 
 
-def reach(command: jax.Array, horizon: float, margin: float) -> jax.Array:
-    """How far from the base's centre the footprint plus ``margin`` can get in ``horizon`` s of
-    ``command``: its half-diagonal plus the centre's path plus the corners' turn (the deployment
-    monitor's bound)."""
-    radius = float(np.hypot(0.5 * KAIROS.length + margin, 0.5 * KAIROS.width + margin))
-    return radius + (jnp.hypot(command[0], command[1]) + jnp.abs(command[2]) * radius) * horizon
+def _radius(margin: float) -> float:
+    return float(np.hypot(0.5 * KAIROS.length + margin, 0.5 * KAIROS.width + margin))
 
 
 def obstacle_scale(command: jax.Array, ranges: jax.Array, horizon: float, time_step: float, margin: float):
@@ -73,16 +71,14 @@ def obstacle_scale(command: jax.Array, ranges: jax.Array, horizon: float, time_s
 
 def sweep(command, ranges, points, horizon: float, time_step: float, margin: float) -> jax.Array:
     """:func:`obstacle_scale` on the scan of :func:`sorted_points`. Only the points within the
-    sweep's :func:`reach` can stop it, so only the chunks of the nearest points that hold them are
-    swept: the same factor as sweeping every point, at the cost of the points nearby."""
+    sweep's :func:`methd_jax.deploy.safety.reach` can stop it, so only the chunks of the nearest
+    points that hold them are swept: the same factor as sweeping every point, at the cost of the
+    points nearby."""
     body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
     half = body + margin
     steps = max(1, round(horizon / time_step))
     poses = arc(command, time_step * jnp.arange(1, steps + 1))
-    total = points.shape[0]
-    padded = -(-total // CHUNK) * CHUNK
-    points = jnp.concatenate([points, jnp.full((padded - total, 2), 1e3, points.dtype)])
-    needed = jnp.sum(ranges <= reach(command, horizon, margin) + 0.01)  # 1 cm for rounding
+    needed = jnp.sum(ranges <= reach(command, _radius(margin), horizon, jnp) + 0.01)  # 1 cm for rounding
     chunks = (needed + CHUNK - 1) // CHUNK
 
     def hits(c):  # (T,) whether a point of chunk c is newly hit between samples
@@ -108,7 +104,7 @@ def slide(command: jax.Array, ranges: jax.Array, config: SafetyConfig) -> tuple[
     :meth:`SafetyConfig.turns`, scaled to its own clear factor, closest to the command."""
     turns = config.turns()
 
-    near = sorted_points(ranges)  # the candidates turn the command's speed, so reach no farther
+    near = sorted_points(ranges)  # sorted once for the command and its candidates
 
     def scale(c):
         return sweep(c, *near, config.horizon, config.time_step, config.margin)
@@ -116,7 +112,7 @@ def slide(command: jax.Array, ranges: jax.Array, config: SafetyConfig) -> tuple[
     s0 = scale(command)
     if len(turns) == 1:
         return command, s0
-    radius = float(np.hypot(0.5 * KAIROS.length + config.margin, 0.5 * KAIROS.width + config.margin))
+    radius = _radius(config.margin)
     t = jnp.asarray(turns, jnp.float32)
 
     def search():  # the neighbours' sweeps only when the command's own is blocked
