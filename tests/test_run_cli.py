@@ -1,6 +1,7 @@
 """``python -m train.run``: help, one-line errors on bad input, and a whole small run on disk."""
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -59,9 +60,17 @@ def test_resume_of_a_missing_run_is_one_line(capsys, tmp_path):
     assert len(err.strip().splitlines()) == 1 and "not a run folder" in err
 
 
-def test_a_small_run_writes_everything_a_user_needs(tmp_path, capsys):
-    run = tmp_path / "run"
-    assert main(["quick", *TINY, "--out", str(run), "--quiet"]) == 0
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    """One tiny finished run (two iterations, a checkpoint after each), shared read-only: tests that
+    change it work on a copy."""
+    run = tmp_path_factory.mktemp("small") / "run"
+    assert main(["quick", *TINY, "checkpoint_every=1", "--out", str(run), "--quiet"]) == 0
+    return run
+
+
+def test_a_small_run_writes_everything_a_user_needs(small_run, capsys):
+    run = small_run
     for name in ("config.json", "metrics.jsonl", "reward_curve.png", "README.md", "policy/params.npz"):
         assert (run / name).exists(), name
     assert list((run / "tb").glob("events.out.tfevents.*"))
@@ -76,7 +85,8 @@ def test_a_small_run_writes_everything_a_user_needs(tmp_path, capsys):
         "learning_rate",
     } <= set(rows[0])
     meta = json.loads((run / "config.json").read_text())
-    assert meta["preset"] == "quick" and meta["overrides"] == TINY and meta["config"]["num_envs"] == 8
+    assert meta["preset"] == "quick" and meta["overrides"] == [*TINY, "checkpoint_every=1"]
+    assert meta["config"]["num_envs"] == 8
     readme = (run / "README.md").read_text()
     assert "--resume" in readme and "export.load" in readme
 
@@ -86,67 +96,15 @@ def test_a_small_run_writes_everything_a_user_needs(tmp_path, capsys):
     action = np.asarray(policy(np.zeros((3, 97), np.float32)))
     assert action.shape == (3, 3) and np.all(np.abs(action) <= 1)
     # a second run into the same folder refuses rather than mixing checkpoints
+    before = sorted(p.name for p in run.rglob("*"))
     assert main(["quick", *TINY, "--out", str(run), "--quiet"]) == 2
     assert "--resume" in capsys.readouterr().err
+    assert sorted(p.name for p in run.rglob("*")) == before
 
 
-def test_presets_are_the_thesis_table():
-    su, guide, nav = (PRESETS[n][1] for n in ("su", "guide", "nav"))
-    for c in (su, guide, nav):
-        assert (c.ppo.rollouts, c.ppo.epochs, c.ppo.minibatches) == (48, 5, 8)
-        assert (c.ppo.gamma, c.ppo.lam, c.ppo.learning_rate, c.ppo.entropy_scale) == (0.99, 0.95, 5e-4, 0.005)
-    assert (su.num_envs, nav.num_envs, guide.num_envs) == (2048, 2048, 4096)
-    assert (su.timesteps, nav.timesteps, guide.timesteps) == (960_000, 960_000, 240_000)
-    assert nav.env.num_users == 2 and su.env.num_users == 1
-
-
-def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
-    from conftest import export_random_policy
-
-    import envs
-    import networks
-
-    # a run folder holding a GuideRL policy (random init: its training is tested in test_ppo)
-    guide = tmp_path / "guide"
-    env = envs.make("guide", motion="sample")
-    export_random_policy(guide, env, "guide", networks.GuideActorCritic(hidden=(16, 16)), seed=2)
-    nav = tmp_path / "nav"
-    args = ["nav", *TINY, f"guide_run={guide}", "--out", str(nav), "--quiet"]
-    assert main(args) == 0
-    manifest = export.load(nav).manifest
-    assert manifest["env"] == "nav" and manifest["observation_size"] == 72 + 33
-    # a policy of the wrong kind is refused with one line
-    assert main(["nav", *TINY, f"guide_run={nav}", "--out", str(tmp_path / "x"), "--quiet"]) == 2
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "not a guide policy" in err
-
-
-def test_max_minutes_ends_early_with_a_checkpoint_and_the_export(tmp_path, capsys):
+def test_resume_falls_back_past_a_damaged_checkpoint(small_run, tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["quick", *TINY, "timesteps=400", "--out", str(run), "--quiet"]
-    assert main([*args, "--max-minutes", "1e-6"]) == 0  # out of time after the first call
-    rows = (run / "metrics.jsonl").read_text().splitlines()
-    assert len(rows) == CHUNK and (run / "checkpoints" / str(CHUNK)).is_dir()
-    assert export.load(run).manifest["trained"]["iteration"] == CHUNK
-    metrics = run / "metrics.jsonl"
-    metrics.write_text(metrics.read_text() + f'{{"iteration": {CHUNK + 1}, "loss/pol')  # killed mid-append
-    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 0  # continues by a call
-    iterations = [json.loads(r)["iteration"] for r in metrics.read_text().splitlines()]
-    assert iterations == list(range(1, 2 * CHUNK + 1))
-    # a metrics file that is not this run's is refused before anything is written
-    config = (run / "config.json").read_text()
-    metrics.write_text('{"epoch": 3}\n{"epoch": 4}\n')
-    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 2
-    err = capsys.readouterr().err
-    assert "metrics.jsonl: line 1 is not a metrics row" in err and len(err.strip().splitlines()) == 1
-    assert (run / "config.json").read_text() == config and metrics.read_text().startswith('{"epoch": 3}')
-    assert main([*args[:-3], "--out", str(tmp_path / "b"), "--max-minutes", "0"]) == 2
-    assert "--max-minutes must be positive" in capsys.readouterr().err
-
-
-def test_resume_falls_back_past_a_damaged_checkpoint(tmp_path, capsys):
-    run = tmp_path / "run"
-    assert main(["quick", *TINY, "checkpoint_every=1", "--out", str(run), "--quiet"]) == 0  # 1, 2
+    shutil.copytree(small_run, run)  # checkpoints 1 and 2
     for f in (run / "checkpoints" / "2").rglob("*"):
         if f.is_file():
             f.write_bytes(f.read_bytes()[: len(f.read_bytes()) // 3])  # a save cut short
@@ -163,15 +121,14 @@ def test_resume_falls_back_past_a_damaged_checkpoint(tmp_path, capsys):
     assert "restores into this run's configuration" in err and len(err.strip().splitlines()) == 1
 
 
-def test_init_from_starts_from_the_other_runs_learned_state(tmp_path, capsys):
+def test_init_from_starts_from_the_other_runs_learned_state(small_run, tmp_path, capsys):
     import jax
     from flax import traverse_util
 
     from train import run as run_lib
     from train.presets import apply_overrides, preset
 
-    source = tmp_path / "a"
-    assert main(["quick", *TINY, "--out", str(source), "--quiet"]) == 0
+    source = small_run
     config = apply_overrides(preset("quick"), [*TINY, "env.weights.velocity=-0.6", f"init_from={source}"])
     setup = run_lib.build(config)
     fresh = jax.jit(setup.trainer.init)(jax.random.key(7))
@@ -230,6 +187,60 @@ def _check_two_user_start_from_su_policy(source):
         run_lib._warm_start(warm, source / "policy", wide_setup)
     with pytest.raises(ConfigError, match="neither a run folder with checkpoints nor a policy folder"):
         run_lib._warm_start(warm, source / "tb", setup)
+
+
+def test_presets_are_the_thesis_table():
+    su, guide, nav = (PRESETS[n][1] for n in ("su", "guide", "nav"))
+    for c in (su, guide, nav):
+        assert (c.ppo.rollouts, c.ppo.epochs, c.ppo.minibatches) == (48, 5, 8)
+        assert (c.ppo.gamma, c.ppo.lam, c.ppo.learning_rate, c.ppo.entropy_scale) == (0.99, 0.95, 5e-4, 0.005)
+    assert (su.num_envs, nav.num_envs, guide.num_envs) == (2048, 2048, 4096)
+    assert (su.timesteps, nav.timesteps, guide.timesteps) == (960_000, 960_000, 240_000)
+    assert nav.env.num_users == 2 and su.env.num_users == 1
+
+
+def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
+    from conftest import export_random_policy
+
+    import envs
+    import networks
+
+    # a run folder holding a GuideRL policy (random init: its training is tested in test_ppo)
+    guide = tmp_path / "guide"
+    env = envs.make("guide", motion="sample")
+    export_random_policy(guide, env, "guide", networks.GuideActorCritic(hidden=(16, 16)), seed=2)
+    nav = tmp_path / "nav"
+    args = ["nav", *TINY, f"guide_run={guide}", "--out", str(nav), "--quiet"]
+    assert main(args) == 0
+    manifest = export.load(nav).manifest
+    assert manifest["env"] == "nav" and manifest["observation_size"] == 72 + 33
+    # a policy of the wrong kind is refused with one line
+    assert main(["nav", *TINY, f"guide_run={nav}", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "not a guide policy" in err
+
+
+def test_max_minutes_ends_early_with_a_checkpoint_and_the_export(tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["quick", *TINY, "timesteps=400", "--out", str(run), "--quiet"]
+    assert main([*args, "--max-minutes", "1e-6"]) == 0  # out of time after the first call
+    rows = (run / "metrics.jsonl").read_text().splitlines()
+    assert len(rows) == CHUNK and (run / "checkpoints" / str(CHUNK)).is_dir()
+    assert export.load(run).manifest["trained"]["iteration"] == CHUNK
+    metrics = run / "metrics.jsonl"
+    metrics.write_text(metrics.read_text() + f'{{"iteration": {CHUNK + 1}, "loss/pol')  # killed mid-append
+    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 0  # continues by a call
+    iterations = [json.loads(r)["iteration"] for r in metrics.read_text().splitlines()]
+    assert iterations == list(range(1, 2 * CHUNK + 1))
+    # a metrics file that is not this run's is refused before anything is written
+    config = (run / "config.json").read_text()
+    metrics.write_text('{"epoch": 3}\n{"epoch": 4}\n')
+    assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 2
+    err = capsys.readouterr().err
+    assert "metrics.jsonl: line 1 is not a metrics row" in err and len(err.strip().splitlines()) == 1
+    assert (run / "config.json").read_text() == config and metrics.read_text().startswith('{"epoch": 3}')
+    assert main([*args[:-3], "--out", str(tmp_path / "b"), "--max-minutes", "0"]) == 2
+    assert "--max-minutes must be positive" in capsys.readouterr().err
 
 
 def test_out_never_overwrites_what_a_user_has(tmp_path, capsys):
