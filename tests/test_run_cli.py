@@ -4,6 +4,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from train.presets import PRESETS, ConfigError
 from train.run import CHUNK, main
 
 TINY = [*TINY_RUN, "timesteps=8"]
+SU_POLICY = Path(__file__).resolve().parents[1] / "assets" / "pretrained" / "su"
 
 
 def test_help_lists_presets_and_options():
@@ -199,16 +201,39 @@ def test_presets_are_the_thesis_table():
     assert nav.env.num_users == 2 and su.env.num_users == 1
 
 
-def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
+def _random_guide_run(folder):
+    """A run folder holding a GuideRL policy (random init: its training is tested in test_ppo)."""
     from conftest import export_random_policy
 
     import envs
     import networks
 
-    # a run folder holding a GuideRL policy (random init: its training is tested in test_ppo)
-    guide = tmp_path / "guide"
     env = envs.make("guide", motion="sample")
-    export_random_policy(guide, env, "guide", networks.GuideActorCritic(hidden=(16, 16)), seed=2)
+    return export_random_policy(folder, env, "guide", networks.GuideActorCritic(hidden=(16, 16)), seed=2)
+
+
+def test_guide_run_is_the_nav_runs_goal_source(tmp_path):
+    """What ``guide_run=`` does without training (the slow test below trains with it): the NavRL
+    environment steers its goal with that GuideRL policy; a policy of another kind is refused."""
+    from train import run as run_lib
+    from train.presets import apply_overrides, preset
+
+    policy = export.load(_random_guide_run(tmp_path / "guide"))
+    setup = run_lib.build(apply_overrides(preset("nav"), [*TINY, f"guide_run={tmp_path / 'guide'}"]))
+    obs = np.random.default_rng(0).normal(size=(4, 15)).astype(np.float32)
+    np.testing.assert_array_equal(np.asarray(setup.env.guide_policy(obs)), np.asarray(policy(obs)))
+    assert run_lib.build(apply_overrides(preset("nav"), TINY)).env.guide_policy is None  # scripted
+    su = tmp_path / "su" / "policy"
+    su.parent.mkdir()
+    shutil.copytree(SU_POLICY, su)
+    with pytest.raises(ConfigError, match="holds a 'su' policy, not a guide policy"):
+        run_lib.build(apply_overrides(preset("nav"), [*TINY, f"guide_run={su.parent}"]))
+
+
+@pytest.mark.slow
+def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
+    guide = tmp_path / "guide"
+    _random_guide_run(guide)
     nav = tmp_path / "nav"
     args = ["nav", *TINY, f"guide_run={guide}", "--out", str(nav), "--quiet"]
     assert main(args) == 0
