@@ -203,10 +203,10 @@ def test_a_wheel_runs_from_any_folder_with_its_assets(tmp_path):
     assert done.returncode == 0, done.stderr
     (wheel,) = wheels.glob("methd_jax-*.whl")
     env = tmp_path / "env"
-    venv.create(env, system_site_packages=True, with_pip=True)
+    venv.create(env, system_site_packages=True)  # no pip of its own: this pip installs into it
     python = str(env / "bin" / "python")
     done = subprocess.run(
-        [python, "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
+        [sys.executable, "-m", "pip", "--python", python, "install", "-q", "--no-deps", str(wheel)],
         capture_output=True,
         text=True,
         timeout=600,

@@ -21,7 +21,8 @@ from train import rollout as rollout_cli
 STEPS = 80
 
 
-@pytest.fixture(scope="module", params=["su", "nav", "guide"])
+# nav's recording runs su's code with a second user (~25 s more on CI): in the slow set
+@pytest.fixture(scope="module", params=["su", pytest.param("nav", marks=pytest.mark.slow), "guide"])
 def recorded(request):
     """(name, env, rollout) of each environment, the robot driven by a constant command."""
     name = request.param
