@@ -48,26 +48,23 @@ def test_deploy_controller_acts_as_the_jax_policy_on_recorded_observations():
 @pytest.fixture(scope="module")
 def first_ten():
     bank = ev.load_bank("default", "test", ev.HipConfig()).take(range(10))
-    lab = floors.lab()
-    policy = ev.load_policy(SU, bank, "su")
     safe = ev.load_policy(SU, bank, "su", safety=SafetyConfig())
     results = ev.evaluate(
-        {"Heuristic": methods.Heuristic(), "DRL": policy, ev.SAFETY_ROW: safe}, {}, bank, lab, progress=False
+        {"Heuristic": methods.Heuristic(), ev.SAFETY_ROW: safe}, {}, bank, floors.lab(), progress=False
     )
     return {k: metrics.summary(v) for k, v in results.items()}
 
 
 def test_shipped_policy_on_the_first_ten_held_out_trajectories(first_ten):
-    """The shipped policy beats the Heuristic's T_pos with and without the safety layer and serves
-    every request; DRL alone grazes furniture (docs/results.md: 13 contacts in the 100), the layer
-    leaves no obstacle contact and no more user contacts than DRL alone."""
-    drl, safe, heuristic = first_ten["SU DRL"], first_ten["SU DRL + safety"], first_ten["SU Heuristic"]
+    """The shipped policy as deployed (with the safety layer) beats the Heuristic's T_pos, leaves no
+    obstacle contact and serves every request. DRL alone is not run here (one engine fewer to
+    compile): it grazes furniture (docs/results.md: 13 contacts in the 100, 2 in these 10), and its
+    row and the layer's effect on user contacts are python -m train.evaluate's."""
+    safe, heuristic = first_ten["SU DRL + safety"], first_ten["SU Heuristic"]
     print({k: {m: v[m] for m in ("t_pos", "served", "collisions_obstacle")} for k, v in first_ten.items()})
-    assert drl["t_pos"][0] < heuristic["t_pos"][0] and safe["t_pos"][0] < heuristic["t_pos"][0]
+    assert safe["t_pos"][0] < heuristic["t_pos"][0]
     assert safe["collisions_obstacle"] == 0
-    assert safe["collisions_user"] <= drl["collisions_user"]  # the layer's slides keep the base evading
-    for row in (drl, safe):
-        assert row["requested"] >= 9 and row["served"] == row["requested"]
+    assert safe["requested"] >= 9 and safe["served"] == safe["requested"]
 
 
 @pytest.mark.parametrize("folder", [SU, GUIDE, NAV], ids=["su", "guide", "nav"])
