@@ -13,7 +13,7 @@ from pathlib import Path
 
 TEST_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
 """Most of the suite's time is XLA compiling for the CPU. Without XLA's CPU fusion emitters the
-evaluation engines compile in half the time (and run ~10% slower), a good trade for tests that run
+evaluation engines compile in half the time (and run ~13% slower), a good trade for tests that run
 each program briefly; small MLPs over thousands of rows run up to 4x slower."""
 
 

@@ -223,11 +223,8 @@ def test_guide_run_is_the_nav_runs_goal_source(tmp_path):
     obs = np.random.default_rng(0).normal(size=(4, 15)).astype(np.float32)
     np.testing.assert_array_equal(np.asarray(setup.env.guide_policy(obs)), np.asarray(policy(obs)))
     assert run_lib.build(apply_overrides(preset("nav"), TINY)).env.guide_policy is None  # scripted
-    su = tmp_path / "su" / "policy"
-    su.parent.mkdir()
-    shutil.copytree(SU_POLICY, su)
     with pytest.raises(ConfigError, match="holds a 'su' policy, not a guide policy"):
-        run_lib.build(apply_overrides(preset("nav"), [*TINY, f"guide_run={su.parent}"]))
+        run_lib.build(apply_overrides(preset("nav"), [*TINY, f"guide_run={SU_POLICY}"]))
 
 
 @pytest.mark.slow
