@@ -50,7 +50,7 @@ from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT, CONTROL_HZ
 from methd_jax.distances import USER_RADIUS
 from methd_jax.floors import Floor, FloorConfig
-from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
+from methd_jax.geometry import KAIROS, path_around_discs, rotate, to_local, wrap_angle
 from methd_jax.motion.features import HipConfig, MotionBank
 
 ENV_FLOORS = FloorConfig(room_size=(13.0, 16.0))
@@ -120,6 +120,12 @@ class NavConfig:
     """Above 0: the goal is the HIP pushed out of obstacles until a disc of this radius around it
     is free and every user is beyond d_crit (:func:`methd_jax.floors.push_clear`), so a HIP inside
     furniture or a wall does not pull the robot into it (the thesis's goal is the raw HIP: 0), m."""
+    distance_around: bool = False
+    """r_d's distance is the way to the goal round each user's critical disc and each obstacle's
+    covering discs (widened by half the base's width; :func:`methd_jax.floors.obstacle_discs`,
+    :func:`methd_jax.geometry.path_around_discs`) instead of the straight line, so that a base
+    behind a user or a piece of furniture is paid for going round it rather than for pressing
+    toward the goal through it (the thesis: the straight distance)."""
     users_visible: bool = False
     """Users appear to the LiDAR as leg-height cylinders (the thesis's LiDAR could not see them)."""
     user_radius: float = USER_RADIUS
@@ -140,7 +146,7 @@ class NavConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise ValueError(f"{name} must be an integer, got {value!r}")
-        for name in ("lab", "users_visible", "randomize_dynamics"):
+        for name in ("lab", "users_visible", "distance_around", "randomize_dynamics"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         for f in dataclasses.fields(self):
@@ -454,6 +460,16 @@ class NavEnv(Env):
         )
         return goal.at[:2].set(xy)
 
+    def _path_length(self, floor: Floor, pose: jax.Array, goal: jax.Array, user_xy: jax.Array) -> jax.Array:
+        """The way from the base to the goal round the users' critical discs and the obstacles."""
+        discs, mask = floors.obstacle_discs(floor, 0.5 * KAIROS.width)
+        users = jnp.concatenate(
+            [user_xy, jnp.full((user_xy.shape[0], 1), self.config.safety.critical_distance)], 1
+        )
+        discs = jnp.concatenate([discs, users])
+        mask = jnp.concatenate([mask, jnp.ones(user_xy.shape[0], bool)])
+        return path_around_discs(pose[:2], goal[:2], discs, mask)
+
     def observe(self, w: World, action: jax.Array, key: jax.Array, users: dict | None = None):
         """The observation, the unweighted reward terms and the step's diagnostics.
 
@@ -498,6 +514,7 @@ class NavEnv(Env):
             inflation_scale=self._inflation_scale,
             user_distances=d_u,
             d_goal=d_g,
+            d_path=self._path_length(w.floor, pose, w.goal, user_xy) if cfg.distance_around else None,
             dyaw=dyaw,
             held=held,
             action=action,

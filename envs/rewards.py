@@ -140,16 +140,18 @@ def terms(
     velocity: jax.Array,
     acceleration: jax.Array,
     safety: SafetyConfig,
+    d_path: jax.Array | None = None,
 ) -> dict[str, jax.Array]:
     """All unweighted terms of eq. 4.17 for one step.
 
     ``ranges`` are the true, unclamped ranges; ``boundary`` (b_r) and ``inflation_scale`` are the
-    per-ray constants of :meth:`methd_jax.geometry.Footprint.ray_geometry`.
+    per-ray constants of :meth:`methd_jax.geometry.Footprint.ray_geometry`. ``d_path``, where
+    given, replaces the straight ``d_goal`` in r_d only (the way to the goal round obstacles).
     """
     inflation = (ranges - boundary) * inflation_scale  # f(l) of eq. 4.13
     bad = unsafe(user_distances, inflation, safety)
     return {
-        "distance": distance_reward(d_goal, bad),
+        "distance": distance_reward(d_goal if d_path is None else d_path, bad),
         "goal": goal_reward(d_goal, dyaw, held, bad, safety),
         "yaw": yaw_reward(d_goal, dyaw, bad),
         "obstacle_collision": obstacle_collision(ranges, boundary + safety.collision_margin),

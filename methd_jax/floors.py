@@ -450,6 +450,34 @@ def clearance(floor: Floor, xy: jax.Array) -> jax.Array:
     return jnp.minimum(signed_distance(floor, xy), to_bounds)
 
 
+def obstacle_discs(floor: Floor, widen: float = 0.0) -> tuple[jax.Array, jax.Array]:
+    """``(discs (C + 3P, 3), mask (C + 3P,))``: the obstacles inside the interior as discs (x, y,
+    radius) widened by ``widen``. A cylinder is its own disc; a box is three equal discs along its
+    long side that together cover it (one disc would make a long bench a wide one); any other
+    polygon one disc about its vertices' mean through its farthest vertex. The walls (polygons
+    whose centre lies outside the interior) are left out: a disc round a wall would cover the room."""
+    own = floor.vertex_mask
+    n = jnp.maximum(jnp.sum(own, 1), 1)
+    centre = jnp.sum(jnp.where(own[..., None], floor.polygons, 0.0), 1) / n[:, None]
+    reach = jnp.max(jnp.where(own, jnp.linalg.norm(floor.polygons - centre[:, None], axis=-1), 0.0), 1)
+    p = floor.polygons
+    e0, e1 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 1]
+    l0, l1 = jnp.linalg.norm(e0, axis=-1), jnp.linalg.norm(e1, axis=-1)
+    long_ = jnp.where((l0 >= l1)[:, None], e0, e1)  # the long side, as a vector
+    length, width = jnp.maximum(l0, l1), jnp.minimum(l0, l1)
+    is_box = n == 4
+    offsets = jnp.array([-1.0, 0.0, 1.0]) / 3.0
+    centres = centre[:, None] + jnp.where(is_box[:, None, None], offsets[None, :, None] * long_[:, None], 0.0)
+    radius = jnp.where(is_box, jnp.hypot(length / 6.0, width / 2.0), reach)
+    b = floor.bounds
+    inside = (centre[:, 0] > b[0]) & (centre[:, 0] < b[2]) & (centre[:, 1] > b[1]) & (centre[:, 1] < b[3])
+    pmask = floor.polygon_mask & inside
+    pmask = jnp.stack([pmask & is_box, pmask, pmask & is_box], 1)  # one disc for a non-box
+    polys = jnp.concatenate([centres, jnp.broadcast_to(radius[:, None, None], (*centres.shape[:2], 1))], -1)
+    discs = jnp.concatenate([floor.circles, polys.reshape(-1, 3)], 0) + jnp.array([0.0, 0.0, widen])
+    return discs, jnp.concatenate([floor.circle_mask, pmask.reshape(-1)])
+
+
 def push_clear(
     floor: Floor,
     xy: jax.Array,

@@ -119,3 +119,29 @@ class Footprint:
 
 KAIROS = Footprint()
 """The CoboDeck base: 1.13 m long, 0.91 m wide, r = 0.77 m."""
+
+
+def path_around_discs(start: jax.Array, goal: jax.Array, discs: jax.Array, mask: jax.Array) -> jax.Array:
+    """Length of the way from ``start`` to ``goal`` (each ``(2,)``) around the discs ``(K, 3)``
+    (x, y, radius) where ``mask`` ``(K,)`` is set: the straight distance plus, for each disc the
+    segment crosses, the shortest way round that disc alone (tangent, arc, tangent) less the
+    straight one. Discs are taken one at a time, so overlapping discs are each skirted on their
+    own; a disc that holds the goal is ignored (it cannot be gone round), and a start inside a disc
+    counts from the disc's rim. Continuous in ``start``, and equal to the straight distance as
+    ``start`` reaches ``goal``."""
+    straight = jnp.linalg.norm(goal - start)
+    centre, radius = discs[:, :2], discs[:, 2]
+    to_a, to_b = start - centre, goal - centre
+    na, nb = jnp.linalg.norm(to_a, axis=-1), jnp.linalg.norm(to_b, axis=-1)
+    a = jnp.maximum(na, radius)
+    b = jnp.maximum(nb, radius)
+    cos_t = jnp.sum(to_a * to_b, -1) / jnp.maximum(na * nb, 1e-9)
+    theta = jnp.arccos(jnp.clip(cos_t, -1.0, 1.0))
+    alpha = jnp.arccos(jnp.clip(radius / a, 0.0, 1.0))
+    beta = jnp.arccos(jnp.clip(radius / b, 0.0, 1.0))
+    tangents = jnp.sqrt(jnp.maximum(a * a - radius * radius, 0.0)) + jnp.sqrt(
+        jnp.maximum(b * b - radius * radius, 0.0)
+    )
+    around = jnp.where(theta > alpha + beta, tangents + radius * (theta - alpha - beta), straight)
+    extra = jnp.where(mask & (nb > radius), jnp.maximum(around - straight, 0.0), 0.0)
+    return straight + jnp.sum(extra)

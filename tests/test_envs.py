@@ -12,6 +12,7 @@ from envs.nav import NavConfig, observation_layout
 from methd_jax import floors, motion
 from methd_jax import robot as robot_lib
 from methd_jax.floors import FloorConfig
+from methd_jax.geometry import path_around_discs
 
 EMPTY = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 0), num_polygons=(0, 0))
 OPEN_ROOM = FloorConfig(room_size=(20.0, 20.0), num_circles=(0, 0), num_polygons=(0, 0))
@@ -242,6 +243,33 @@ def test_users_visible_option(bank):
     _, obs_blind, *_ = _state_with_robot_at(blind, key, pose)
     assert float(obs_seen[0]) == pytest.approx(2.0 - 0.25, abs=1e-4)  # ray 0 hits the user's legs
     assert float(obs_blind[0]) > 2.0
+
+
+def test_distance_around_option_pays_r_d_for_the_way_round_the_user(bank):
+    kw = dict(bank=bank, floor=EMPTY, lidar_noise=0.0, lidar_dropout=0.0)
+    around, straight = envs.make("su", distance_around=True, **kw), envs.make("su", **kw)
+    key = jax.random.key(4)
+    w = around.reset(key).pipeline_state
+    user, goal = np.asarray(bank.pose[w.users[0], 0, :2]), np.asarray(w.goal[:2])
+    ahead = (goal - user) / np.linalg.norm(goal - user)
+    side = np.array([-ahead[1], ahead[0]])
+    side = side if np.dot(side, -goal) > 0 else -side  # toward the room's middle, away from walls
+    for pose, blocked in [(user - 2.0 * ahead, True), (goal + 1.5 * side, False)]:
+        pose = [*pose, 0.0]
+        _, _, t_around, m = _state_with_robot_at(around, key, pose)
+        _, _, t_straight, _ = _state_with_robot_at(straight, key, pose)
+        d = float(m["distance_to_goal"])
+        assert float(t_straight["distance"]) == pytest.approx(3.0 - d, abs=1e-5)
+        if blocked:  # behind the user: round the critical disc, ~1.7 m longer than straight through
+            way = float(
+                path_around_discs(
+                    jnp.asarray(pose[:2]), jnp.asarray(goal), jnp.array([[*user, 1.77]]), jnp.array([True])
+                )
+            )
+            assert way > d + 1.0
+            assert float(t_around["distance"]) == pytest.approx(3.0 - way, abs=1e-4)
+        else:
+            assert float(t_around["distance"]) == pytest.approx(3.0 - d, abs=1e-5)
 
 
 @pytest.mark.slow  # an option beyond the thesis, off by default
@@ -503,6 +531,7 @@ def test_lab_fraction_mixes_the_lab_twin_with_procedural_floors(bank):
         ({"goal_tolerance": -0.2}, "goal_tolerance must be >= 0"),
         ({"mass_scale": (-1.0, 1.3)}, "mass_scale must be an ordered positive range"),
         ({"lab": "no"}, "lab must be true or false"),
+        ({"distance_around": 1}, "distance_around must be true or false"),
         ({"num_rays": "90"}, "num_rays must be an integer"),
         ({"num_rays": 90.5}, "num_rays must be an integer"),
     ],

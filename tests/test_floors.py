@@ -280,3 +280,28 @@ def test_a_floor_file_that_would_load_wrong_is_refused(tmp_path, change, message
     with pytest.raises(floors.FloorSpecError, match=message) as err:
         floors.lab(path)
     assert str(err.value).startswith(str(path))
+
+
+@pytest.mark.parametrize("which", ["lab", "procedural"])
+def test_obstacle_discs_cover_every_obstacle_and_leave_the_walls_out(which):
+    if which == "lab":
+        floor = floors.lab()
+    else:
+        cfg = floors.FloorConfig(room_size=(13.0, 16.0), num_circles=(8, 8), num_polygons=(8, 8))
+        floor = floors.generate(jax.random.key(5), cfg)
+    discs, mask = (np.asarray(x) for x in floors.obstacle_discs(floor, 0.0))
+    discs = discs[mask]
+    b = np.asarray(floor.bounds)
+    pts = np.random.default_rng(0).uniform(b[:2] - 0.2, b[2:] + 0.2, (40_000, 2))
+    sd = np.asarray(jax.vmap(lambda p: floors.signed_distance(floor, p))(jnp.asarray(pts, jnp.float32)))
+    in_room = np.all((pts > b[:2]) & (pts < b[2:]), 1)
+    covered = np.any(
+        np.linalg.norm(pts[:, None] - discs[None, :, :2], axis=-1) <= discs[None, :, 2] + 1e-5, 1
+    )
+    assert np.sum(in_room & (sd < 0)) > 500
+    assert np.all(covered[in_room & (sd < 0)])  # every point of furniture is inside a disc
+    # no disc for a wall: every centre is inside the room and none spans half of it
+    assert np.all((discs[:, :2] > b[:2]) & (discs[:, :2] < b[2:])) and discs[:, 2].max() < 1.5
+    assert np.mean(covered[in_room]) < 2.5 * np.mean(in_room & (sd < 0)) / np.mean(in_room)  # not much more
+    widened = np.asarray(floors.obstacle_discs(floor, 0.45)[0])[mask]
+    np.testing.assert_allclose(widened[:, 2], discs[:, 2] + 0.45, rtol=1e-6)

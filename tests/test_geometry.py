@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from methd_jax import geometry
-from methd_jax.geometry import KAIROS, Footprint
+from methd_jax.geometry import KAIROS, Footprint, path_around_discs
 
 HALF_L, HALF_W = 1.13 / 2, 0.91 / 2
 
@@ -110,3 +110,60 @@ def test_ray_geometry_constants_at_known_rays():
     assert scale[0] == pytest.approx(1.0) and scale[180] == pytest.approx(1.0)
     assert scale[60] == pytest.approx(math.cos(math.radians(30)), rel=1e-5)  # 30 deg: front branch
     assert scale[90] == pytest.approx(math.sin(math.radians(45)), rel=1e-5)  # 45 deg: side branch
+
+
+def _shortest_way_round(a, b, centre, radius, samples=2000):
+    """Independent reference: the straight segment if it misses the disc, else the shortest of
+    (a -> p_i) + arc(p_i, p_j) + (p_j -> b) over sampled rim points p_i, p_j that a and b can see."""
+    a, b, centre = (np.asarray(v, np.float64) - centre for v in (a, b, centre))
+    ab = b - a
+    t = np.clip(-np.dot(a, ab) / np.dot(ab, ab), 0.0, 1.0)
+    if np.linalg.norm(a + t * ab) >= radius:
+        return float(np.linalg.norm(ab))
+    ang = np.linspace(-np.pi, np.pi, samples, endpoint=False)
+    rim = radius * np.stack([np.cos(ang), np.sin(ang)], 1)
+    sees_a = np.sum(rim * (a - rim), 1) >= 0  # the tangent plane at p does not hide a
+    sees_b = np.sum(rim * (b - rim), 1) >= 0
+    arc = radius * np.abs(np.angle(np.exp(1j * (ang[None, :] - ang[:, None]))))
+    total = np.linalg.norm(rim - a, axis=1)[:, None] + arc + np.linalg.norm(rim - b, axis=1)[None, :]
+    return float(np.min(np.where(sees_a[:, None] & sees_b[None, :], total, np.inf)))
+
+
+def test_the_way_round_a_disc_matches_a_sampled_shortest_path():
+    rng = np.random.default_rng(0)
+    disc = jnp.array([[0.4, -0.2, 1.3]])
+    checked = blocked = 0
+    while checked < 40:
+        a, b = rng.uniform(-4, 4, (2, 2))
+        if min(np.linalg.norm(a - [0.4, -0.2]), np.linalg.norm(b - [0.4, -0.2])) < 1.35:
+            continue
+        ours = float(path_around_discs(jnp.asarray(a), jnp.asarray(b), disc, jnp.array([True])))
+        ref = _shortest_way_round(a, b, np.array([0.4, -0.2]), 1.3)
+        assert ours == pytest.approx(ref, abs=2e-3)
+        blocked += ours > np.linalg.norm(b - a) + 1e-3
+        checked += 1
+    assert blocked >= 10  # both kinds of segment were checked
+
+
+def test_the_way_round_discs_counts_only_what_is_in_the_way():
+    f = lambda *v: jnp.asarray(v, jnp.float32)  # noqa: E731
+    disc, on = jnp.array([[0.0, 0.0, 1.0]]), jnp.array([True])
+    through = 2 * math.sqrt(3) + math.pi / 3  # tangent, 60 degrees of rim, tangent
+    assert float(path_around_discs(f(-2, 0), f(2, 0), disc, on)) == pytest.approx(through, rel=1e-5)
+    assert float(path_around_discs(f(-2, 1.5), f(2, 1.5), disc, on)) == pytest.approx(4.0)  # clear
+    assert float(path_around_discs(f(-2, 0), f(2, 0), disc, jnp.array([False]))) == pytest.approx(4.0)
+    assert float(path_around_discs(f(-2, 0), f(0.5, 0), disc, on)) == pytest.approx(2.5)  # goal inside
+    # a start inside the disc counts from the rim: out, round and on
+    inside = math.sqrt(3) + 2 * math.pi / 3
+    assert float(path_around_discs(f(-0.5, 0), f(2, 0), disc, on)) == pytest.approx(inside, rel=1e-5)
+    # two discs on the line: each adds its own way round
+    two = jnp.array([[0.0, 0.0, 1.0], [6.0, 0.0, 1.0]])
+    got = float(path_around_discs(f(-2, 0), f(8, 0), two, jnp.array([True, True])))
+    one = math.sqrt(3) + math.sqrt(63) + (2 * math.pi / 3 - math.acos(1 / 8)) - 10.0  # from 2 m to 8 m
+    assert got == pytest.approx(10.0 + 2 * one, rel=1e-5)
+    # continuous: approaching the goal round the disc, the length shrinks to zero
+    ts = np.linspace(0, 1, 50)
+    lengths = [
+        float(path_around_discs(f(2 * math.cos(t * 3), 2 * math.sin(t * 3)), f(2, 0), disc, on)) for t in ts
+    ]
+    assert np.all(np.abs(np.diff(lengths)) < 0.2) and lengths[0] == pytest.approx(0.0, abs=1e-5)

@@ -140,3 +140,19 @@ def test_weights_are_the_thesis_tables():
     )
     assert NAV_WEIGHTS.acceleration == -0.0000075 and NAV_WEIGHTS.goal == 50.0
     assert (SAFE.collision_distance, SAFE.critical_distance, SAFE.inflation_distance) == (1.37, 1.77, 0.5)
+
+
+def test_the_way_round_replaces_the_straight_distance_in_r_d_only():
+    straight = _terms(OPEN, d_goal=0.005, dyaw=0.001, held=0.1)
+    f = jnp.asarray
+    args = dict(
+        ranges=f(OPEN, jnp.float32), boundary=BOUNDARY, inflation_scale=SCALE, user_distances=f((10.0,))
+    )
+    args |= dict(d_goal=f(0.005), dyaw=f(0.001), held=f(0.1), velocity=f((0, 0, 0), jnp.float32))
+    zero = f((0, 0, 0), jnp.float32)
+    args |= dict(action=zero, prev_action=zero, prev_prev_action=zero, acceleration=zero, safety=SAFE)
+    around = rewards.terms(**args, d_path=f(4.2))
+    assert float(around["distance"]) == pytest.approx(3.0 - 4.2)  # negative: paid even while unsafe
+    for name in straight:
+        if name != "distance":
+            assert float(around[name]) == float(straight[name]), name
