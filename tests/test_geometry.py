@@ -112,7 +112,7 @@ def test_ray_geometry_constants_at_known_rays():
     assert scale[90] == pytest.approx(math.sin(math.radians(45)), rel=1e-5)  # 45 deg: side branch
 
 
-def _shortest_way_round(a, b, centre, radius, samples=2000):
+def _shortest_way_round(a, b, centre, radius, samples=1500):
     """Independent reference: the straight segment if it misses the disc, else the shortest of
     (a -> p_i) + arc(p_i, p_j) + (p_j -> b) over sampled rim points p_i, p_j that a and b can see."""
     a, b, centre = (np.asarray(v, np.float64) - centre for v in (a, b, centre))

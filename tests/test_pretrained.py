@@ -93,14 +93,14 @@ def held_out_bank():
 
 @pytest.mark.parametrize(
     "trajectories",
-    # the first 50 held-out trajectories' 2,450 ordered pairs (measured 0.962); all 100's 9,896, as
-    # ``python -m train.evaluate`` reports it (measured 0.956; the thesis: 0.99), is 4x the time
-    [50, pytest.param(100, marks=pytest.mark.slow)],
+    # the first 30 held-out trajectories' 870 ordered pairs (measured 0.956); all 100's 9,896, as
+    # ``python -m train.evaluate`` reports it (measured 0.956; the thesis: 0.99), take minutes
+    [30, pytest.param(100, marks=pytest.mark.slow)],
 )
 def test_shipped_guide_names_the_next_user_on_held_out_pairs(held_out_bank, trajectories):
     got = ev.guide_accuracy(GUIDE, held_out_bank.take(range(trajectories)))
     print(got)
-    assert got["pairs"] == {50: 2450, 100: 9896}[trajectories] and got["accuracy"] >= 0.95
+    assert got["pairs"] == {30: 870, 100: 9896}[trajectories] and got["accuracy"] >= 0.95
 
 
 def test_deployed_guide_steps_u_w_as_the_training_environment(held_out_bank):
