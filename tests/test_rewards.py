@@ -30,6 +30,7 @@ def _terms(
     v=(0, 0, 0),
     q=(0, 0, 0),
     safety=SAFE,
+    d_path=None,
 ):
     f = jnp.asarray
     return rewards.terms(
@@ -46,6 +47,7 @@ def _terms(
         velocity=f(v, jnp.float32),
         acceleration=f(q, jnp.float32),
         safety=safety,
+        d_path=None if d_path is None else f(d_path),
     )
 
 
@@ -144,14 +146,7 @@ def test_weights_are_the_thesis_tables():
 
 def test_the_way_round_replaces_the_straight_distance_in_r_d_only():
     straight = _terms(OPEN, d_goal=0.005, dyaw=0.001, held=0.1)
-    f = jnp.asarray
-    args = dict(
-        ranges=f(OPEN, jnp.float32), boundary=BOUNDARY, inflation_scale=SCALE, user_distances=f((10.0,))
-    )
-    args |= dict(d_goal=f(0.005), dyaw=f(0.001), held=f(0.1), velocity=f((0, 0, 0), jnp.float32))
-    zero = f((0, 0, 0), jnp.float32)
-    args |= dict(action=zero, prev_action=zero, prev_prev_action=zero, acceleration=zero, safety=SAFE)
-    around = rewards.terms(**args, d_path=f(4.2))
+    around = _terms(OPEN, d_goal=0.005, dyaw=0.001, held=0.1, d_path=4.2)
     assert float(around["distance"]) == pytest.approx(3.0 - 4.2)  # negative: paid even while unsafe
     for name in straight:
         if name != "distance":
