@@ -60,6 +60,7 @@ class Policy:
             floor=ctx.floor,
             users=jnp.zeros(u, jnp.int32),
             t=jnp.int32(0),
+            start=jnp.int32(0),
             request_step=jnp.int32(2**30),  # the engine's Haptic behaviour handles the request
             requester=jnp.int32(0),
             actions=state.actions[1:],

@@ -140,6 +140,11 @@ class NavConfig:
     """Commands reach the base this many control steps late."""
     request_jitter: float = 0.0
     """The request fires up to this many seconds before the trajectory's own request, s."""
+    start_before_request: tuple[float, float] = (0.0, 0.0)
+    """(lo, hi) with hi > 0: episodes begin a uniform lo-hi seconds before the first request (at the
+    trajectories' beginning where they are shorter), so that training dwells on the approach to a
+    user who is about to ask rather than on long walks; (0, 0): at the trajectories' beginning (the
+    thesis)."""
 
     def __post_init__(self):
         for name in ("num_users", "num_rays", "spawn_candidates", "action_latency"):
@@ -171,6 +176,9 @@ class NavConfig:
             lo, hi = getattr(self, name)
             if not 0 < lo <= hi:
                 raise ValueError(f"{name} must be an ordered positive range, got {(lo, hi)}")
+        window = self.start_before_request
+        if not (len(window) == 2 and 0 <= window[0] <= window[1]):
+            raise ValueError(f"start_before_request must be an ordered range of seconds >= 0, got {window!r}")
         if self.num_users < 1:
             raise ValueError(f"num_users must be at least 1, got {self.num_users}")
         if self.split not in ("train", "test", "all"):
@@ -221,7 +229,8 @@ class World:
     robot: mjx.Data  # the MJX base
     floor: Floor  # this episode's obstacles
     users: jax.Array  # (N,) int32 trajectory of each user
-    t: jax.Array  # () int32 control steps since reset
+    t: jax.Array  # () int32 control step of the users' trajectories
+    start: jax.Array  # () int32 t at reset (the time limit counts from it)
     request_step: jax.Array  # () int32 step at which the request fires
     requester: jax.Array  # () int32 the user who requests
     actions: jax.Array  # (2, 3) a_{t-1}, a_{t-2}
@@ -307,7 +316,12 @@ class NavEnv(Env):
         users = jax.random.choice(keys[1], n_traj, (cfg.num_users,), replace=n_traj < cfg.num_users)
         jitter = jax.random.uniform(keys[2], (cfg.num_users,), maxval=cfg.request_jitter * CONTROL_HZ)
         req = jnp.maximum(self.bank.request_step[users] - jnp.round(jitter).astype(jnp.int32), 1)
-        user_xy = self.bank.pose[users, 0, :2]
+        start = jnp.int32(0)
+        lo, hi = cfg.start_before_request
+        if hi > 0:
+            lead = jax.random.uniform(jax.random.fold_in(keys[11], 1), (), minval=lo, maxval=hi)
+            start = jnp.maximum(jnp.min(req) - jnp.round(lead * CONTROL_HZ).astype(jnp.int32), 0)
+        user_xy = self.bank.pose[users, start, :2]
 
         lo, hi = floor.bounds[:2], floor.bounds[2:]
         cand = jax.random.uniform(keys[3], (cfg.spawn_candidates, 2), minval=lo, maxval=hi)
@@ -330,7 +344,8 @@ class NavEnv(Env):
             robot=robot,
             floor=floor,
             users=users,
-            t=jnp.int32(0),
+            t=start,
+            start=start,
             request_step=jnp.min(req),
             requester=jnp.argmin(req).astype(jnp.int32),
             actions=jnp.zeros((2, 3)),
@@ -378,7 +393,7 @@ class NavEnv(Env):
 
         collided = (terms["obstacle_collision"] > 0) | (terms["user_collision"] > 0)
         success = w.t >= w.request_step + self._cooldown_steps
-        timeout = w.t >= self._limit_steps
+        timeout = w.t - w.start >= self._limit_steps
         done = collided | success | timeout
         w = w.replace(
             actions=jnp.stack([a, w.actions[0]]),

@@ -232,6 +232,40 @@ def test_truncation_at_the_time_limit(bank):
     assert float(state.done) == 1.0 and float(state.info["truncation"]) == 1.0
 
 
+def test_episodes_can_start_shortly_before_the_request(bank):
+    lead = (3.0, 5.0)
+    env = envs.make("nav", bank=bank, floor=EMPTY, num_users=2, start_before_request=lead, time_limit=0.1)
+    req = np.asarray(bank.request_step)
+    reset = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(7), 64))
+    w = reset.pipeline_state
+    t, first = np.asarray(w.t), np.asarray(w.request_step)
+    np.testing.assert_array_equal(first, req[np.asarray(w.users)].min(1))
+    np.testing.assert_array_equal(t, np.asarray(w.start))
+    early = first <= lead[0] * 50  # shorter than the window: from the beginning
+    assert np.all(t[early] == 0)
+    assert np.all((first - t)[~early] >= lead[0] * 50) and np.all((first - t)[~early] <= lead[1] * 50)
+    assert len(np.unique(t)) > 16  # drawn per episode, not one offset
+    # the users are where their trajectories are at the start, and the base spawned clear of them
+    users = np.asarray(bank.pose)[np.asarray(w.users), t[:, None], :2]
+    np.testing.assert_allclose(
+        np.asarray(reset.obs[:, env.observation_layout["user0"]][:, 7]),
+        np.linalg.norm(users[:, 0] - np.asarray(w.robot.qpos)[:, :2], axis=1),
+        atol=1e-4,
+    )
+    base = np.asarray(w.robot.qpos)[:, None, :2]
+    assert np.linalg.norm(users - base, axis=-1).min() >= env.config.safety.critical_distance
+    # the time limit counts from the start, not from the trajectories' beginning
+    step = jax.jit(jax.vmap(env.step))
+    state = reset
+    for _ in range(4):
+        state = step(state, jnp.zeros((64, 3)))
+    assert np.all(np.asarray(state.done) == 0.0)
+    state = step(state, jnp.zeros((64, 3)))
+    assert np.all(np.asarray(state.info["truncation"]) == 1.0)
+    with pytest.raises(ValueError, match="start_before_request"):
+        NavConfig(start_before_request=(5.0, 3.0))
+
+
 def test_users_visible_option(bank):
     seen = envs.make("su", bank=bank, floor=EMPTY, users_visible=True, lidar_noise=0.0, lidar_dropout=0.0)
     blind = envs.make("su", bank=bank, floor=EMPTY, lidar_noise=0.0, lidar_dropout=0.0)
