@@ -107,6 +107,24 @@ def test_running_stats_equal_the_statistics_of_everything_seen():
     np.testing.assert_allclose(stats.denormalize(stats.normalize(everything[:3])), everything[:3], rtol=1e-4)
 
 
+def test_fit_critic_moves_only_the_critic_and_lowers_its_error():
+    trainer = build(apply_overrides(preset("guide"), list(TINY_GUIDE))).trainer
+    start = jax.jit(trainer.init)(jax.random.key(1))
+    fitted, losses = jax.jit(trainer.fit_critic, static_argnums=1)(start, 12)
+    losses = np.asarray(losses)
+    assert losses.shape == (12,) and losses[-3:].mean() < 0.5 * losses[0]
+    mask = ppo.critic_mask(start.params)
+    moved = jax.tree.map(lambda a, b: not np.array_equal(a, b), start.params, fitted.params)
+    assert jax.tree.leaves(moved) == jax.tree.leaves(mask)  # the critic's layers and only they
+    assert mask["params"]["value"]["kernel"] and not mask["params"]["actor"]["policy"]["kernel"]
+    for a, b in zip(jax.tree.leaves(start.opt_state), jax.tree.leaves(fitted.opt_state), strict=True):
+        np.testing.assert_array_equal(a, b)  # PPO's optimiser, rate and count untouched
+    assert float(fitted.learning_rate) == float(start.learning_rate) and int(fitted.iteration) == 0
+    assert float(fitted.obs_stats.count) > float(start.obs_stats.count)  # the statistics move on
+    with pytest.raises(ValueError, match="no critic layer"):
+        ppo.critic_mask({"params": {"actor": {}}})
+
+
 def test_kl_adaptive_learning_rate_follows_skrl():
     cfg = ppo.PPOConfig(kl_threshold=0.01, kl_factor=2.0, lr_factor=1.5, lr_range=(1e-4, 1e-3))
     assert float(ppo.adapt_learning_rate(6e-4, 0.03, cfg)) == pytest.approx(4e-4)  # KL > 0.02: slower

@@ -12,7 +12,7 @@ from conftest import TINY_RUN
 
 from methd_jax.jsonable import jsonable
 from train import export
-from train.presets import PRESETS, ConfigError
+from train.presets import PRESETS, ConfigError, apply_overrides, preset
 from train.run import CHUNK, main
 
 TINY = [*TINY_RUN, "timesteps=8"]
@@ -128,7 +128,6 @@ def test_init_from_starts_from_the_other_runs_learned_state(small_run, tmp_path,
     from flax import traverse_util
 
     from train import run as run_lib
-    from train.presets import apply_overrides, preset
 
     source = small_run
     config = apply_overrides(preset("quick"), [*TINY, "env.weights.velocity=-0.6", f"init_from={source}"])
@@ -160,7 +159,6 @@ def _check_two_user_start_from_su_policy(source):
     import jax.numpy as jnp
 
     from train import run as run_lib
-    from train.presets import apply_overrides, preset
 
     su = export.load(source)
     nav = apply_overrides(
@@ -191,6 +189,14 @@ def _check_two_user_start_from_su_policy(source):
         run_lib._warm_start(warm, source / "tb", setup)
 
 
+def test_critic_warmup_needs_a_start():
+    with pytest.raises(ConfigError, match="critic_warmup must be >= 0 and needs init_from"):
+        apply_overrides(preset("guide"), ["critic_warmup=3"])
+    with pytest.raises(ConfigError, match="critic_warmup must be >= 0"):
+        apply_overrides(preset("nav_cpu"), ["critic_warmup=-1"])
+    assert apply_overrides(preset("nav_cpu"), ["critic_warmup=3"]).critic_warmup == 3
+
+
 def test_presets_are_the_thesis_table():
     su, guide, nav = (PRESETS[n][1] for n in ("su", "guide", "nav"))
     for c in (su, guide, nav):
@@ -216,7 +222,6 @@ def test_guide_run_is_the_nav_runs_goal_source(tmp_path):
     """What ``guide_run=`` does without training (the slow test below trains with it): the NavRL
     environment steers its goal with that GuideRL policy; a policy of another kind is refused."""
     from train import run as run_lib
-    from train.presets import apply_overrides, preset
 
     policy = export.load(_random_guide_run(tmp_path / "guide"))
     setup = run_lib.build(apply_overrides(preset("nav"), [*TINY, f"guide_run={tmp_path / 'guide'}"]))
@@ -299,7 +304,6 @@ def test_a_run_resumes_with_the_configuration_it_stored(tmp_path):
     import dataclasses
 
     from train import run as run_lib
-    from train.presets import apply_overrides, preset
 
     mine = dataclasses.replace(preset("guide"), num_envs=24, hidden=(7, 5), seed=11)
     folder = tmp_path / "custom"

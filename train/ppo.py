@@ -232,6 +232,20 @@ def all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
 
 
+def critic_mask(params) -> dict:
+    """True at the parameters only the critic uses: the layers named ``value`` or ``critic*``
+    (:class:`networks.ActorCritic`'s value head, :class:`networks.GuideActorCritic`'s critic)."""
+    top = params["params"]
+    if "value" not in top:
+        raise ValueError(f"no critic layer named 'value' among {sorted(top)}")
+
+    def every(tree, flag: bool):
+        return jax.tree.map(lambda _: flag, tree)
+
+    critic = {name: every(layer, name == "value" or name.startswith("critic")) for name, layer in top.items()}
+    return {**{k: every(v, False) for k, v in params.items() if k != "params"}, "params": critic}
+
+
 class Trainer:
     """PPO on ``num_envs`` copies of ``env`` with the Flax ``network`` (``obs -> (mean, log_std,
     value)``)."""
@@ -382,6 +396,60 @@ class Trainer:
             learning_rate=lr,
         )
         return state, self._metrics(traj, parts, lr, params)
+
+    def fit_critic(self, s: TrainState, iterations: int, learning_rate: float = 1e-3):
+        """``iterations`` rollouts in which only the critic's own layers learn (those named
+        ``value`` or ``critic*``, see :func:`critic_mask`), by Adam of their own on the squared
+        error to the standardised returns; the actor, the PPO optimiser, the learning rate and the
+        iteration count stay as they are (the statistics and environments move on).
+
+        For a run started from an exported policy, which carries no critic: a random value head on
+        the actor's shared body makes the first PPO update's advantages noise, and their gradient
+        moves the policy far (a KL of 28 in the first iteration of a NavRL stage started from the
+        shipped policy). Returns the state and the mean value loss of each iteration."""
+        cfg = self.config
+        mask = critic_mask(s.params)
+        opt = optax.masked(optax.adam(learning_rate), mask)
+        flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731
+
+        def loss(params, obs, target):
+            return jnp.mean((self.network.apply(params, obs)[2] - target) ** 2)
+
+        def one(carry, _):
+            s, opt_state = carry
+            env_state, key, traj, last_value = self._rollout(s)
+            _, returns = gae(traj["reward"], traj["value"], traj["done"], last_value, cfg.gamma, cfg.lam)
+            value_stats = s.value_stats.update(returns)
+            obs = s.obs_stats.normalize(flat(traj["obs"]), cfg.obs_clip)
+            target = value_stats.normalize(flat(returns))
+            key, k_perm = jax.random.split(key)
+
+            def epoch(carry, k):
+                perm = jax.random.permutation(k, obs.shape[0]).reshape(cfg.minibatches, -1)
+
+                def minibatch(carry, idx):
+                    params, opt_state = carry
+                    value, grads = jax.value_and_grad(loss)(params, obs[idx], target[idx])
+                    grads = jax.tree.map(lambda g, m: g if m else jnp.zeros_like(g), grads, mask)
+                    updates, opt_state = opt.update(grads, opt_state, params)
+                    return (optax.apply_updates(params, updates), opt_state), value
+
+                return jax.lax.scan(minibatch, carry, perm)
+
+            (params, opt_state), losses = jax.lax.scan(
+                epoch, (s.params, opt_state), jax.random.split(k_perm, cfg.epochs)
+            )
+            s = s.replace(
+                params=params,
+                obs_stats=s.obs_stats.update(traj["obs"]),
+                value_stats=value_stats,
+                env_state=env_state,
+                key=key,
+            )
+            return (s, opt_state), jnp.mean(losses)
+
+        (s, _), losses = jax.lax.scan(one, (s, opt.init(s.params)), None, iterations)
+        return s, losses
 
     def _metrics(self, traj, parts, lr, params) -> dict[str, jax.Array]:
         ended = traj["episode_done"]

@@ -100,6 +100,10 @@ class RunConfig:
     statistics; same network, observation size and num_envs; floors, rewards and PPO settings may
     differ) or from an exported policy folder (parameters and observation statistics; the run may
     see more observation fields, e.g. a second user, which start at zero weight)."""
+    critic_warmup: int = 0
+    """With ``init_from``: iterations in which only the critic learns before PPO starts
+    (:meth:`train.ppo.Trainer.fit_critic`; an exported policy carries no critic, and PPO on a
+    random one moves the policy far in its first update); not logged as iterations."""
 
     def __post_init__(self):
         if self.env_name not in tasks.TASKS:
@@ -111,6 +115,8 @@ class RunConfig:
         for name in ("num_envs", "timesteps", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.critic_warmup < 0 or (self.critic_warmup and not self.init_from):
+            raise ConfigError(f"critic_warmup must be >= 0 and needs init_from, got {self.critic_warmup}")
         if not self.hidden or min(self.hidden) < 1:
             raise ConfigError(f"hidden must list positive layer widths, got {self.hidden}")
         if self.guide_run and "guide_run" not in task.depends.values():

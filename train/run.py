@@ -323,6 +323,16 @@ def train(
     if config.init_from and not resume:
         state = _warm_start(state, Path(config.init_from), setup)
         log(f"started from the newest checkpoint of {config.init_from}")
+        if config.critic_warmup:
+            began = time.perf_counter()
+            fit = jax.jit(trainer.fit_critic, static_argnums=1, donate_argnums=0)
+            state, losses = fit(state, config.critic_warmup)
+            losses = np.asarray(losses)
+            log(
+                f"fitted the critic alone for {config.critic_warmup} iterations "
+                f"({config.critic_warmup * trainer.transitions_per_iteration:,} transitions, "
+                f"{time.perf_counter() - began:.0f} s): value loss {losses[0]:.3g} -> {losses[-1]:.3g}"
+            )
     if resume:
         state, _ = ckpts.restore_intact(state, log)
         start = int(state.iteration)
