@@ -234,7 +234,9 @@ def test_truncation_at_the_time_limit(bank):
 
 def test_episodes_can_start_shortly_before_the_request(bank):
     lead = (3.0, 5.0)
-    env = envs.make("nav", bank=bank, floor=EMPTY, num_users=2, start_before_request=lead, time_limit=0.1)
+    env = envs.make(
+        "nav", bank=bank, floor=EMPTY, num_users=2, num_rays=72, start_before_request=lead, time_limit=0.1
+    )
     req = np.asarray(bank.request_step)
     reset = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(7), 64))
     w = reset.pipeline_state
