@@ -405,8 +405,7 @@ class Trainer:
 
         For a run started from an exported policy, which carries no critic: a random value head on
         the actor's shared body makes the first PPO update's advantages noise, and their gradient
-        moves the policy far (a KL of 28 in the first iteration of a NavRL stage started from the
-        shipped policy). Returns the state and the mean value loss of each iteration."""
+        moves the policy far. Returns the state and the mean value loss of each iteration."""
         cfg = self.config
         mask = critic_mask(s.params)
         opt = optax.masked(optax.adam(learning_rate), mask)
@@ -430,6 +429,7 @@ class Trainer:
                 def minibatch(carry, idx):
                     params, opt_state = carry
                     value, grads = jax.value_and_grad(loss)(params, obs[idx], target[idx])
+                    # optax.masked passes the other leaves' gradients through as updates: zero them
                     grads = jax.tree.map(lambda g, m: g if m else jnp.zeros_like(g), grads, mask)
                     updates, opt_state = opt.update(grads, opt_state, params)
                     return (optax.apply_updates(params, updates), opt_state), value
