@@ -317,9 +317,9 @@ class NavEnv(Env):
         jitter = jax.random.uniform(keys[2], (cfg.num_users,), maxval=cfg.request_jitter * CONTROL_HZ)
         req = jnp.maximum(self.bank.request_step[users] - jnp.round(jitter).astype(jnp.int32), 1)
         start = jnp.int32(0)
-        lo, hi = cfg.start_before_request
-        if hi > 0:
-            lead = jax.random.uniform(jax.random.fold_in(keys[11], 1), (), minval=lo, maxval=hi)
+        least, most = cfg.start_before_request
+        if most > 0:
+            lead = jax.random.uniform(jax.random.fold_in(keys[11], 1), minval=least, maxval=most)
             start = jnp.maximum(jnp.min(req) - jnp.round(lead * CONTROL_HZ).astype(jnp.int32), 0)
         user_xy = self.bank.pose[users, start, :2]
 

@@ -408,7 +408,7 @@ class Trainer:
         moves the policy far. Returns the state and the mean value loss of each iteration."""
         cfg = self.config
         mask = critic_mask(s.params)
-        opt = optax.masked(optax.adam(learning_rate), mask)
+        opt = optax.multi_transform({True: optax.adam(learning_rate), False: optax.set_to_zero()}, mask)
         flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731
 
         def loss(params, obs, target):
@@ -429,8 +429,6 @@ class Trainer:
                 def minibatch(carry, idx):
                     params, opt_state = carry
                     value, grads = jax.value_and_grad(loss)(params, obs[idx], target[idx])
-                    # optax.masked passes the other leaves' gradients through as updates: zero them
-                    grads = jax.tree.map(lambda g, m: g if m else jnp.zeros_like(g), grads, mask)
                     updates, opt_state = opt.update(grads, opt_state, params)
                     return (optax.apply_updates(params, updates), opt_state), value
 
