@@ -130,7 +130,10 @@ def test_init_from_starts_from_the_other_runs_learned_state(small_run, tmp_path,
     from train import run as run_lib
 
     source = small_run
-    config = apply_overrides(preset("quick"), [*TINY, "env.weights.velocity=-0.6", f"init_from={source}"])
+    # another reward, and an environment state of another layout (one more metric): only the
+    # learned parts come over
+    overrides = [*TINY, "env.weights.velocity=-0.6", "env.request_weight=1", f"init_from={source}"]
+    config = apply_overrides(preset("quick"), overrides)
     setup = run_lib.build(config)
     fresh = jax.jit(setup.trainer.init)(jax.random.key(7))
     warm = run_lib._warm_start(fresh, source, setup)
@@ -148,6 +151,7 @@ def test_init_from_starts_from_the_other_runs_learned_state(small_run, tmp_path,
     # a run whose network does not fit is refused in one line
     assert main(["quick", *TINY, "hidden=16", f"init_from={source}", "--out", str(tmp_path / "b")]) == 2
     assert "does not fit this run" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()  # nothing left behind that would block the corrected command
     # the same source's exported policy starts a two-user (NavRL) run
     _check_two_user_start_from_su_policy(source)
 

@@ -106,6 +106,39 @@ class Checkpoints:
         raw = self._manager.restore(step, args=ocp.args.StandardRestore(_by_path(like)))
         return _rebuilt(like, at)
 
+    def restore_fields(self, like, fields: tuple[str, ...], step: int | None = None) -> dict:
+        """The attributes ``fields`` of the state saved at ``step`` (default: the newest), each in
+        the structure of the same attribute of ``like``; the rest of the saved state (the
+        environments, whose layout follows the environment's configuration) may differ from
+        ``like``'s. Checkpoints in the flat-index layout restore only into a whole matching state."""
+        step = self.latest() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint in {self.directory}")
+        saved = self._manager.item_metadata(step)
+        if saved is not None and all(len(k) == 5 and k.isdigit() for k in saved):
+            whole = self.restore(like, step)
+            return {f: getattr(whole, f) for f in fields}
+        raw = self._manager.restore(step, args=ocp.args.StandardRestore())
+        out = {}
+        for f in fields:
+            if f not in raw:
+                raise KeyError(f"the checkpoint at step {step} has no {f!r}")
+
+            def at(path, i, node=raw[f]):
+                for n in path:
+                    node = node[n]
+                return jax.numpy.asarray(node)
+
+            part = _rebuilt(getattr(like, f), at)
+            for (path, got), want in zip(
+                jax.tree_util.tree_flatten_with_path(part)[0], jax.tree.leaves(getattr(like, f)), strict=True
+            ):
+                if got.shape != want.shape:
+                    where = "/".join(_name(e) for e in path)
+                    raise ValueError(f"{f}/{where} is {got.shape} there and {want.shape} here")
+            out[f] = part
+        return out
+
     def restore_intact(self, like, log=lambda *a: None):
         """``(state, step)`` of the newest checkpoint that restores into ``like``; older ones are
         tried when a newer one is damaged (each skip is logged, and the damaged folders are renamed

@@ -98,18 +98,14 @@ def _warm_start(state, source: Path, setup: Setup):
     try:
         if ckpts.latest() is None:
             raise ConfigError(f"init_from={source}: no checkpoint there")
-        other = ckpts.restore(state)
-    except (ValueError, KeyError) as err:
+        learned = ckpts.restore_fields(
+            state, ("params", "opt_state", "obs_stats", "value_stats", "learning_rate")
+        )
+    except (ValueError, KeyError, TypeError) as err:
         raise ConfigError(f"init_from={source}: its checkpoint does not fit this run ({err})") from None
     finally:
         ckpts.close()
-    return state.replace(
-        params=other.params,
-        opt_state=other.opt_state,
-        obs_stats=other.obs_stats,
-        value_stats=other.value_stats,
-        learning_rate=other.learning_rate,
-    )
+    return state.replace(**learned)
 
 
 def _from_policy(state, folder: Path, setup: Setup):
@@ -298,7 +294,6 @@ def train(
     progress = progress and primary
     earlier_rows = _read_rows(run_dir / "metrics.jsonl") if resume else []  # checked before any write
     distributed.barrier("run folder checked")
-    run_dir.mkdir(parents=True, exist_ok=True)
     setup = build(config, devices)
     trainer = setup.trainer
     processes = f" in {jax.process_count()} processes" if jax.process_count() > 1 else ""
@@ -309,8 +304,6 @@ def train(
         "device": f"{trainer.mesh.devices.size} x {jax.devices()[0].device_kind} "
         f"({jax.default_backend()}){processes}",
     }
-    if primary:
-        (run_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
 
     log = (lambda *a: tqdm.write(" ".join(map(str, a)), file=sys.stderr)) if progress else (lambda *a: None)
     init = jax.jit(trainer.init)
@@ -318,8 +311,8 @@ def train(
     # one host round trip per chunk instead of per iteration
     run_chunk = jax.jit(trainer.run_upto, static_argnums=2, donate_argnums=0)
     state = init(jax.random.key(config.seed))
-    ckpts = Checkpoints(run_dir / "checkpoints")
     start = 0
+    # a start that fails here (a warm start that does not fit) leaves no run folder behind
     if config.init_from and not resume:
         state = _warm_start(state, Path(config.init_from), setup)
         log(f"started from the newest checkpoint of {config.init_from}")
@@ -333,6 +326,10 @@ def train(
                 f"({config.critic_warmup * trainer.transitions_per_iteration:,} transitions, "
                 f"{time.perf_counter() - began:.0f} s): value loss {losses[0]:.3g} -> {losses[-1]:.3g}"
             )
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if primary:
+        (run_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
+    ckpts = Checkpoints(run_dir / "checkpoints")
     if resume:
         state, _ = ckpts.restore_intact(state, log)
         start = int(state.iteration)
