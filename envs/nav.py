@@ -145,6 +145,11 @@ class NavConfig:
     trajectories' beginning where they are shorter), so that training dwells on the approach to a
     user who is about to ask rather than on long walks; (0, 0): at the trajectories' beginning (the
     thesis)."""
+    request_weight: float = 0.0
+    """Above 0: at the step the request fires, r_d (towards the requester's HIP, which is the goal
+    from that step on) is paid this many times more, reported as ``reward/request``. The
+    evaluation hands the base to its navigator at the request, so where the base is then is what
+    a policy is judged by; with a short ``cooldown`` the episode ends there (the thesis: 0)."""
 
     def __post_init__(self):
         for name in ("num_users", "num_rays", "spawn_candidates", "action_latency"):
@@ -169,6 +174,7 @@ class NavConfig:
             "goal_deadzone",
             "goal_yaw_deadzone",
             "goal_clearance",
+            "request_weight",
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -362,6 +368,7 @@ class NavEnv(Env):
         world = self.update_goal(world, self._user_features(world), keys[9], scripted_step=False)
         obs, terms, metrics = self.observe(world, jnp.zeros(3), keys[10])
         _, weighted = rewards.total(terms, cfg.weights)
+        weighted = self._with_request(weighted, terms, jnp.bool_(False))
         metrics = _step_metrics(metrics, weighted, terms, jnp.bool_(False), jnp.bool_(False))
         zero = jnp.float32(0.0)
         return State(
@@ -390,6 +397,8 @@ class NavEnv(Env):
         w = self.update_goal(w, users, k_goal, scripted_step=True)
         obs, terms, metrics = self.observe(w, a, k_noise, users)
         reward, weighted = rewards.total(terms, cfg.weights)
+        weighted = self._with_request(weighted, terms, w.t == w.request_step)
+        reward = reward + weighted.get("reward/request", 0.0)
 
         collided = (terms["obstacle_collision"] > 0) | (terms["user_collision"] > 0)
         success = w.t >= w.request_step + self._cooldown_steps
@@ -422,6 +431,14 @@ class NavEnv(Env):
         cmd = blended * self._scale
         cmd = cmd.at[:2].set(jnp.where(jnp.abs(cmd[:2]) < cfg.deadzone_linear, 0.0, cmd[:2]))
         return cmd.at[2].set(jnp.where(jnp.abs(cmd[2]) < cfg.deadzone_angular, 0.0, cmd[2]))
+
+    def _with_request(self, weighted: dict, terms: dict, firing: jax.Array) -> dict:
+        """``weighted`` with ``reward/request`` (the extra r_d at the request step) where it is paid."""
+        cfg = self.config
+        if cfg.request_weight <= 0:
+            return weighted
+        extra = jnp.where(firing, cfg.request_weight * cfg.weights.distance * terms["distance"], 0.0)
+        return {**weighted, "reward/request": extra}
 
     def _user_features(self, w: World) -> dict[str, jax.Array]:
         return jax.vmap(self.bank.at, (0, None))(w.users, w.t)

@@ -268,6 +268,35 @@ def test_episodes_can_start_shortly_before_the_request(bank):
         NavConfig(start_before_request=(5.0, 3.0))
 
 
+def test_request_weight_pays_r_d_again_when_the_request_fires(bank):
+    kw = dict(
+        bank=bank, floor=EMPTY, num_users=2, num_rays=72, start_before_request=(0.2, 0.4), cooldown=0.02
+    )
+    plain, paid = envs.make("nav", **kw), envs.make("nav", request_weight=5.0, **kw)
+    keys = jax.random.split(jax.random.key(3), 16)
+    states = [jax.jit(jax.vmap(env.reset))(keys) for env in (plain, paid)]
+    assert "reward/request" in states[1].metrics and "reward/request" not in states[0].metrics
+    steps = [jax.jit(jax.vmap(env.step)) for env in (plain, paid)]
+    fired = np.zeros(16, bool)
+    for _ in range(25):  # 10-20 steps to the request, then one of cooldown
+        before = np.asarray(states[1].pipeline_state.t) < np.asarray(states[1].pipeline_state.request_step)
+        states = [step(s, jnp.zeros((16, 3))) for step, s in zip(steps, states, strict=True)]
+        w = states[1].pipeline_state
+        firing = before & (np.asarray(w.t) == np.asarray(w.request_step))
+        extra = np.asarray(states[1].metrics["reward/request"])
+        r_d = np.asarray(states[1].metrics["reward/distance"])
+        np.testing.assert_allclose(extra, np.where(firing, 5.0 * r_d, 0.0), atol=1e-5)
+        np.testing.assert_allclose(
+            np.asarray(states[1].reward) - np.asarray(states[0].reward), extra, atol=1e-4
+        )
+        fired |= firing
+        done = np.asarray(states[1].done) == 1.0
+        assert np.all(np.asarray(states[1].metrics["success"])[done & ~fired] == 0.0)
+    assert fired.sum() >= 12  # those that did not collide first
+    with pytest.raises(ValueError, match="request_weight"):
+        NavConfig(request_weight=-1.0)
+
+
 def test_users_visible_option(bank):
     seen = envs.make("su", bank=bank, floor=EMPTY, users_visible=True, lidar_noise=0.0, lidar_dropout=0.0)
     blind = envs.make("su", bank=bank, floor=EMPTY, lidar_noise=0.0, lidar_dropout=0.0)
