@@ -289,11 +289,12 @@ def test_metrics_of_a_hand_made_episode():
     bank = MotionBank.from_trajectories([traj])
     req = int(bank.request_step[0])
     hip = np.asarray(bank.hip[0, req])
-    start = np.array([hip[0], hip[1] + 4.0, hip[2]])  # 4 m north of the HIP, already turned
+    start = np.array([hip[0], hip[1] + 4.0, hip[2] - 0.6])  # 4 m north of the HIP, nearly turned
     res, _ = run(M.Static(), [traj], open_floor(), start)
     assert res["served"][0] == 1
     assert res["request_time"][0] == pytest.approx(req / 50, abs=1e-4)
     assert res["distance_to_hip"][0] == pytest.approx(4.0, abs=0.02)
+    assert res["yaw_to_hip"][0] == pytest.approx(0.6, abs=0.01)
     # a straight drive of 4 m less the 0.2 m tolerance: no faster than cruising all the way (1.2
     # m/s), no slower than a full trapezoid (1 m/s^2 up and down) plus the servos' lag
     cfg = nav.NavigatorConfig()

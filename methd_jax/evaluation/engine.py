@@ -40,7 +40,7 @@ from methd_jax.distances import CRITICAL_DISTANCE, USER_RADIUS
 from methd_jax.evaluation import navigator as nav
 from methd_jax.evaluation.methods import Chase, Context
 from methd_jax.floors import Floor
-from methd_jax.geometry import KAIROS, rotate, to_local
+from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
 from methd_jax.motion.features import MotionBank
 
 CHASE, HAPTIC, ARM, ESCAPE, INFORM = range(5)
@@ -119,6 +119,7 @@ RESULT_FIELDS = (
     "request_time",  # s from the episode's start to the request
     "t_pos",  # s from the request to the base at the HIP (nan if never)
     "distance_to_hip",  # m from the base to the HIP at the request
+    "yaw_to_hip",  # rad, |base yaw - HIP yaw| at the request (the navigator turns at 1 rad/s)
     "served",  # 1 if the arm finished while the request was active
     "escapes",  # Escape activations
     "informs",  # Inform activations
@@ -269,6 +270,7 @@ class Engine:
         results["min_user_distance"] = jnp.full(k, jnp.inf)
         results["request_time"] = jnp.full(k, jnp.nan)
         results["distance_to_hip"] = jnp.full(k, jnp.nan)
+        results["yaw_to_hip"] = jnp.full(k, jnp.nan)
         state = EvalState(
             robot=self.robot.init(schedule.start[0]),
             k=jnp.int32(0),
@@ -361,6 +363,7 @@ class Engine:
         present = jnp.where(fire, solo, s.present)
         res = _set(res, "request_time", k, s.t * CONTROL_DT, fire)
         res = _set(res, "distance_to_hip", k, jnp.linalg.norm(pose[:2] - hip[:2]), fire)
+        res = _set(res, "yaw_to_hip", k, jnp.abs(wrap_angle(hip[2] - pose[2])), fire)
         mode, mode_t = enter(HAPTIC, fire & (mode == CHASE), mode, mode_t)
         resume = jnp.where(fire & ((mode == ESCAPE) | (mode == INFORM)), HAPTIC, resume)
 
