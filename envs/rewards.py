@@ -32,6 +32,10 @@ class SafetyConfig:
     """epsilon_omega of r_g, rad."""
     goal_hold: float = 0.1
     """t_g of r_g: how long the goal tolerance must be held, s."""
+    yaw_radius: float = 1.0
+    """r_omega pays for the goal's yaw within this distance of the goal, falling linearly to 0 there
+    (the thesis: 1 m). The evaluation's navigator turns at 1 rad/s after the request, so a base that
+    arrives facing away loses seconds however near it is."""
     collision_margin: float = 0.0
     """p_o fires when a ray is shorter than b_r plus this, m (the thesis: 0). With a few rays a
     corner touches an obstacle a few cm before any ray crosses the boundary; a margin makes the
@@ -42,6 +46,8 @@ class SafetyConfig:
             value = getattr(self, f.name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"safety.{f.name} must be a finite number >= 0, got {value!r}")
+        if not self.yaw_radius > 0:
+            raise ValueError(f"safety.yaw_radius must be positive, got {self.yaw_radius!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,9 +90,9 @@ def goal_reward(d_goal, dyaw, held, is_unsafe, safety: SafetyConfig) -> jax.Arra
     return jnp.where(ok & ~is_unsafe, 1.0, 0.0)
 
 
-def yaw_reward(d_goal, dyaw, is_unsafe) -> jax.Array:
-    """r_omega (4.8): exp(-3 |dyaw|) * max(1 - d_g, 0) unless unsafe."""
-    return jnp.where(is_unsafe, 0.0, jnp.exp(-3.0 * jnp.abs(dyaw)) * jnp.maximum(1.0 - d_goal, 0.0))
+def yaw_reward(d_goal, dyaw, is_unsafe, radius: float = 1.0) -> jax.Array:
+    """r_omega (4.8): exp(-3 |dyaw|) * max(1 - d_g / radius, 0) unless unsafe (the thesis: radius 1 m)."""
+    return jnp.where(is_unsafe, 0.0, jnp.exp(-3.0 * jnp.abs(dyaw)) * jnp.maximum(1.0 - d_goal / radius, 0.0))
 
 
 def obstacle_collision(ranges: jax.Array, boundary: jax.Array) -> jax.Array:
@@ -153,7 +159,7 @@ def terms(
     return {
         "distance": distance_reward(d_goal if d_path is None else d_path, bad),
         "goal": goal_reward(d_goal, dyaw, held, bad, safety),
-        "yaw": yaw_reward(d_goal, dyaw, bad),
+        "yaw": yaw_reward(d_goal, dyaw, bad, safety.yaw_radius),
         "obstacle_collision": obstacle_collision(ranges, boundary + safety.collision_margin),
         "user_collision": user_collisions(user_distances, safety),
         "critical_zone": critical_zone(user_distances, safety),

@@ -1,5 +1,6 @@
 """Each reward term of eqs. 4.6-4.17 against hand-computed values in constructed situations."""
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
@@ -68,6 +69,18 @@ def test_robot_at_goal_and_held():
         8 * 0.992, rel=1e-3
     )
     assert float(total) == pytest.approx(2.995 + 50 + 8 * math.exp(-0.003) * 0.995, rel=1e-5)
+
+
+def test_yaw_radius_widens_r_omega():
+    # the thesis's r_omega ends 1 m from the goal; with a 3 m radius it falls linearly to 0 there
+    assert float(_terms(OPEN, d_goal=2.0, dyaw=0.5)["yaw"]) == 0.0
+    wide = dataclasses.replace(SAFE, yaw_radius=3.0)
+    assert float(_terms(OPEN, d_goal=2.0, dyaw=0.5, safety=wide)["yaw"]) == pytest.approx(
+        math.exp(-1.5) / 3, rel=1e-5
+    )
+    assert float(_terms(OPEN, d_goal=3.5, dyaw=0.0, safety=wide)["yaw"]) == 0.0
+    with pytest.raises(ValueError, match="yaw_radius"):
+        rewards.SafetyConfig(yaw_radius=0.0)
 
 
 def test_robot_in_the_critical_zone_loses_positive_rewards():
