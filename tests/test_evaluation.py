@@ -322,6 +322,7 @@ def test_summary_and_table():
         "request_time": np.array([1.0, 2.0, np.nan]),
         "t_pos": np.array([1.0, 3.0, np.nan]),
         "distance_to_hip": np.array([0.5, 1.5, np.nan]),
+        "yaw_to_hip": np.array([0.2, 3.0, np.nan]),
         "served": np.array([1.0, 1.0, 0.0]),
         "escapes": np.array([2.0, 0.0, 1.0]),
         "informs": np.zeros(3),
@@ -340,6 +341,10 @@ def test_summary_and_table():
     md = metrics.table_markdown({"SU Static": s})
     assert "2.00 [1.00] | 4.84 [2.27]" in md and "2 (2) | 99 (100)" in md
     assert "| 1 (1 + 0) | 0 |" in md  # collisions: ours split into obstacles + users
+    assert (
+        "| Yaw error to the HIP at the request, median [IQR] rad (beyond the thesis) | 1.60 [1.40] | - |"
+        in md
+    )
 
 
 # -- statistics ------------------------------------------------------------------------------------

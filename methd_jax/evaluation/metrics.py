@@ -5,8 +5,9 @@ base within the goal tolerance of the HIP (requests never reached have none and 
 distance to HIP is the straight-line distance from the base to the HIP at the request; total
 travelled sums the base's path over the whole run; a request is served when the arm finished while
 it was active; collisions count the times the footprint entered an obstacle or touched a user's
-body; Escape activations count every entry into Escape. Beyond the thesis: Inform activations, the
-time some user was within the critical distance, and the closest any user came.
+body; Escape activations count every entry into Escape. Beyond the thesis: the base's yaw error to
+the HIP at the request (the navigator turns the base after it), Inform activations, the time some
+user was within the critical distance, and the closest any user came.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ def summary(results: dict[str, np.ndarray]) -> dict:
     return {
         "t_pos": median_iqr(results["t_pos"]),
         "distance_to_hip": median_iqr(results["distance_to_hip"]),
+        "yaw_to_hip": median_iqr(results["yaw_to_hip"]),
         "travelled": float(np.sum(results["travelled"])),
         "served": int(np.sum(results["served"])),
         "requested": int(np.sum(requested)),
@@ -72,6 +74,7 @@ def _num(x: float) -> str:
 ROWS = (
     ("Haptic positioning time T_pos, median [IQR] s (lower is better)", "t_pos"),
     ("Distance to HIP, median [IQR] m (lower is better)", "distance_to_hip"),
+    ("Yaw error to the HIP at the request, median [IQR] rad (beyond the thesis)", "yaw_to_hip"),
     ("Total travelled distance, m (lower is better)", "travelled"),
     ("Successful haptic serves: served (requested) (higher is better)", "served"),
     ("Robot collisions: all (obstacles + users) (lower is better)", "collisions"),
@@ -86,7 +89,7 @@ def _cell(s: dict | None, key: str) -> str:
     if s is None or key not in s:
         return "-"
     v = s[key]
-    if key in ("t_pos", "distance_to_hip"):
+    if key in ("t_pos", "distance_to_hip", "yaw_to_hip"):
         return f"{_num(v[0])} [{_num(v[1])}]"
     if key == "served":
         return f"{v} ({s['requested']})"
