@@ -58,3 +58,30 @@ def test_a_state_of_another_structure_does_not_restore(tmp_path):
         store.restore(other)
     with pytest.raises(ckpt.CheckpointError, match="restores into this run"):
         store.restore_intact(other)
+
+
+def test_named_fields_restore_whatever_the_rest_of_the_state_holds(tmp_path):
+    from flax import struct
+
+    @struct.dataclass
+    class State:
+        params: dict
+        stats: jax.Array
+        env: dict
+
+    saved = State(params=_state()["params"], stats=jnp.arange(4.0), env={"reward/a": jnp.ones(5)})
+    store = ckpt.Checkpoints(tmp_path)
+    store.save(2, saved)
+    zeros = jax.tree.map(jnp.zeros_like, saved)
+    # the environments report one more metric now: a whole restore refuses, the learned fields come
+    like = zeros.replace(env={"reward/a": jnp.zeros(5), "reward/b": jnp.zeros(5)})
+    with pytest.raises(Exception):  # noqa: B017
+        store.restore(like)
+    got = store.restore_fields(like, ("params", "stats"))
+    assert set(got) == {"params", "stats"}
+    assert _same(got["params"], saved.params) and _same(got["stats"], saved.stats)
+    # a field of another shape is named
+    with pytest.raises(ValueError, match=r"stats is \(4,\) there and \(3,\) here"):
+        store.restore_fields(like.replace(stats=jnp.zeros(3)), ("stats",))
+    with pytest.raises(KeyError, match="has no 'missing'"):
+        store.restore_fields(like, ("missing",))

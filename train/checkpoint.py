@@ -127,16 +127,16 @@ class Checkpoints:
             def at(path, i, node=raw[f]):
                 for n in path:
                     node = node[n]
-                return jax.numpy.asarray(node)
+                return node
 
-            part = _rebuilt(getattr(like, f), at)
-            for (path, got), want in zip(
-                jax.tree_util.tree_flatten_with_path(part)[0], jax.tree.leaves(getattr(like, f)), strict=True
-            ):
+            def placed(path, got, want, f=f):
                 if got.shape != want.shape:
-                    where = "/".join(_name(e) for e in path)
-                    raise ValueError(f"{f}/{where} is {got.shape} there and {want.shape} here")
-            out[f] = part
+                    where = "/".join([f, *(_name(e) for e in path)])
+                    raise ValueError(f"{where} is {got.shape} there and {want.shape} here")
+                return jax.device_put(got, want.sharding) if hasattr(want, "sharding") else got
+
+            like_f = getattr(like, f)
+            out[f] = jax.tree_util.tree_map_with_path(placed, _rebuilt(like_f, at), like_f)
         return out
 
     def restore_intact(self, like, log=lambda *a: None):
