@@ -234,6 +234,32 @@ def test_user_walking_at_the_robot_triggers_escape():
     assert res["collisions_user"][0] == 0
 
 
+def test_trace_is_the_run_step_for_step():
+    # two carried-over episodes with the navigator and Escape: the trace's results are the run's,
+    # bit for bit, whatever the number of steps it records
+    trajs = [
+        walk([(-5.0, 0.0), (1.0, 0.0)], [1.0], name="at"),
+        walk([(0.0, 4.0), (0.0, -3.0)], [1.2], name="across"),
+    ]
+    bank = MotionBank.from_trajectories(trajs)
+    engine = E.Engine(M.Heuristic(), bank, open_floor(circles=[(1.5, 1.5, 0.3)]))
+    schedule = E.Schedule(
+        users=jnp.array([[0], [1]], jnp.int32), start=jnp.zeros((2, 3)), reset=jnp.array([True, False])
+    )
+    key = jax.random.key(3)
+    res = engine.run(schedule, key, chunk=400)
+    steps = round(float(res["duration"].sum()) * 50)
+    assert steps % 400 and res["served"].sum() == 2  # a partial last chunk; both episodes ran
+    rec, traced = engine.trace(schedule, key, steps, chunk=400)
+    for name in res:
+        np.testing.assert_array_equal(traced[name], res[name], err_msg=name)
+    assert len(rec["pose"]) == steps and rec["episode"][-1] == 2  # recorded to the run's end
+    part, _ = engine.trace(schedule, key, 450, chunk=400)
+    np.testing.assert_array_equal(part["pose"], rec["pose"][:450])
+    with pytest.raises(ValueError, match="at least 1"):
+        engine.trace(schedule, key, 0)
+
+
 def test_escape_point_never_inside_an_obstacle():
     # straight back from the user (+x) is a box; the escape point must avoid it
     box = open_floor(polygons=[[(1.0, -0.6), (3.5, -0.6), (3.5, 0.6), (1.0, 0.6)]])

@@ -436,7 +436,9 @@ class Engine:
         command = jnp.where(navigating, nav_local, brake_local)
         direct = (mode == CHASE) & ~order.navigate
         command = jax.lax.cond(  # the sweep only when the base is to move (a parked base is not)
-            ~direct & jnp.any(command != 0), lambda: nav.guard(command, s.scan, ncfg), lambda: command
+            ~direct & jnp.any(command != 0),
+            lambda: nav.guard(command, s.scan, ncfg),
+            lambda: command,
         )
         command = jnp.where(direct, order.command, command)
         nav_command = jnp.concatenate([rotate(pose[2], command[:2]), command[2:]])
@@ -485,34 +487,49 @@ class Engine:
         )
         return jax.lax.cond(done, lambda: self._begin(s, schedule, k + 1), lambda: s)
 
-    def _advance_impl(self, s: EvalState, schedule: Schedule, n: int) -> EvalState:
-        def body(_, s):
-            return jax.lax.cond(s.k < schedule.num_episodes, lambda: self.step(s, schedule), lambda: s)
+    def _record(self, s: EvalState, schedule: Schedule) -> dict[str, jax.Array]:
+        return {
+            "episode": s.k,
+            "mode": s.mode,
+            "pose": robot_lib.pose(s.robot),
+            "users": jax.vmap(self.bank.at)(
+                schedule.users[jnp.minimum(s.k, schedule.num_episodes - 1)], s.play
+            )["pose"],
+            "present": s.present,
+            "direction": s.direction,
+            "touching": s.touching,  # obstacle, user contact
+        }
 
-        return jax.lax.fori_loop(0, n, body, s)
+    def _advance_impl(
+        self, s: EvalState, schedule: Schedule, n: int, limit: jax.Array
+    ) -> tuple[EvalState, dict]:
+        """The first ``limit`` of ``n`` steps (none once every episode is done) and the records of
+        all ``n``. ``run`` and ``trace`` both go through this one compiled function: XLA rounds the
+        same step differently in differently built programs, and since SU episodes carry the base
+        over, a difference in the last bit grows into another run within a few episodes."""
 
-    def trace(self, schedule: Schedule, key: jax.Array, steps: int) -> tuple[dict[str, np.ndarray], dict]:
+        def body(s, i):
+            go = (s.k < schedule.num_episodes) & (i < limit)
+            s = jax.lax.cond(go, lambda: self.step(s, schedule), lambda: s)
+            return s, self._record(s, schedule)
+
+        return jax.lax.scan(body, s, jnp.arange(n))
+
+    def trace(
+        self, schedule: Schedule, key: jax.Array, steps: int, chunk: int = 2500
+    ) -> tuple[dict[str, np.ndarray], dict]:
         """The first ``steps`` steps, recorded: per step the episode, behaviour, robot pose, users'
         positions and presence, the playhead direction and the contacts (obstacle, user), for
-        plots, animations and finding where collisions happen; plus the results so far."""
-
-        def body(s, _):
-            s = self.step(s, schedule)
-            rec = {
-                "episode": s.k,
-                "mode": s.mode,
-                "pose": robot_lib.pose(s.robot),
-                "users": jax.vmap(self.bank.at)(
-                    schedule.users[jnp.minimum(s.k, schedule.num_episodes - 1)], s.play
-                )["pose"],
-                "present": s.present,
-                "direction": s.direction,
-                "touching": s.touching,  # obstacle, user contact
-            }
-            return s, rec
-
-        s, rec = jax.jit(lambda s: jax.lax.scan(body, s, None, length=steps))(self.init(schedule, key))
-        return {k: np.asarray(v) for k, v in rec.items()}, jax.device_get(s.results)
+        plots, animations and finding where collisions happen; plus the results so far. With the
+        same ``chunk`` as :meth:`run` these are the steps of that run, bit for bit."""
+        if steps < 1:
+            raise ValueError(f"steps must be at least 1, got {steps}")
+        s, records = self.init(schedule, key), []
+        for start in range(0, steps, chunk):
+            s, rec = self._advance(s, schedule, chunk, jnp.int32(min(chunk, steps - start)))
+            records.append(jax.device_get(rec))
+        rec = {k: np.concatenate([r[k] for r in records])[:steps] for k in records[0]}
+        return rec, jax.device_get(s.results)
 
     def run(
         self,
@@ -525,7 +542,7 @@ class Engine:
         s = self.init(schedule, key)
         total = schedule.num_episodes
         while True:
-            s = self._advance(s, schedule, chunk)
+            s, _ = self._advance(s, schedule, chunk, jnp.int32(chunk))
             done = int(s.k)
             if progress is not None:
                 progress(done, total)
