@@ -8,12 +8,15 @@ servos' force and torque limits make the base accelerate at a finite rate (3 m/s
 6 rad/s^2) instead of jumping to the commanded velocity.
 
 Everything is pure and vmappable: ``jax.vmap(robot.step)(data, commands)`` steps a fleet.
+:func:`predict` integrates the same servo model without MJX (:meth:`Robot.servo` reads its gains
+and limits from the model), for a guard that asks where the base will coast.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +28,19 @@ from methd_jax.floors import ASSETS
 from methd_jax.geometry import rotate, wrap_angle
 
 ROBOT_ASSET = ASSETS / "kairos_base.xml"
+
+
+class Servo(NamedTuple):
+    """The base's velocity servos as its model sets them, for predicting motion outside MJX: per
+    robot axis (forward, left, yaw) the acceleration is ``gain * (command - velocity)`` clipped to
+    ``+-limit``, integrated by explicit Euler at ``timestep`` as MuJoCo does."""
+
+    gain: tuple[float, float, float]
+    """kv over the mass (forward, left) and over the yaw inertia, 1/s."""
+    limit: tuple[float, float, float]
+    """Force limit over the mass, m/s^2, and torque limit over the inertia, rad/s^2."""
+    timestep: float
+    """The model's physics timestep, s."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +86,19 @@ class Robot:
         # several processes train together (jax.distributed)
         self.model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
 
+    def servo(self) -> Servo:
+        """The servos' gains and limits (see :class:`Servo`) read from the model."""
+        m = self.mj_model
+        body = int(m.jnt_bodyid[0])  # the base: all three joints move it
+        inertia = (float(m.body_mass[body]),) * 2 + (float(m.body_inertia[body][2]),)
+        kv = m.actuator_gainprm[:, 0]
+        force = m.actuator_forcerange[:, 1]
+        return Servo(
+            gain=tuple(float(k / i) for k, i in zip(kv, inertia, strict=True)),
+            limit=tuple(float(f / i) for f, i in zip(force, inertia, strict=True)),
+            timestep=float(m.opt.timestep),
+        )
+
     def init(self, pose: jax.Array) -> mjx.Data:
         """A base at rest at ``pose`` = (x, y, yaw)."""
         data = mjx.make_data(self.model)
@@ -112,6 +141,33 @@ def pose(data: mjx.Data) -> jax.Array:
 def velocity(data: mjx.Data) -> jax.Array:
     """(vx, vy, wz) of the base in the robot frame."""
     return jnp.concatenate([rotate(-data.qpos[2], data.qvel[:2]), data.qvel[2:3]])
+
+
+def predict(servo: Servo, velocity: jax.Array, commands: jax.Array) -> jax.Array:
+    """Poses (x, y, yaw) after each of ``commands`` (T, 3), robot-frame twists held one control
+    period each, for a base now at the origin moving at the robot-frame ``velocity``: (T, 3) in
+    the base's present frame. The servo model of :class:`Servo`; commands are taken as within the
+    speed limits."""
+    gain, limit = jnp.asarray(servo.gain), jnp.asarray(servo.limit)
+    h = servo.timestep
+    substeps = round(CONTROL_DT / h)
+
+    def substep(state, command):
+        xy, th, v, w = state  # v: the linear velocity in the start frame
+        ax = jnp.clip(gain[:2] * (command[:2] - rotate(-th, v)), -limit[:2], limit[:2])
+        aw = jnp.clip(gain[2] * (command[2] - w), -limit[2], limit[2])
+        v, w = v + h * rotate(th, ax), w + h * aw  # velocities first, then positions (MuJoCo's Euler)
+        return (xy + h * v, th + h * w, v, w), None
+
+    def period(state, command):
+        for _ in range(substeps):
+            state, _ = substep(state, command)
+        return state, jnp.concatenate([state[0], state[1][None]])
+
+    v0 = jnp.asarray(velocity, jnp.float32)
+    start = (jnp.zeros(2), jnp.float32(0.0), v0[:2], v0[2])
+    _, poses = jax.lax.scan(period, start, jnp.asarray(commands, jnp.float32))
+    return poses
 
 
 def acceleration(data: mjx.Data) -> jax.Array:

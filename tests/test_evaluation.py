@@ -127,7 +127,10 @@ def test_guard_agrees_with_the_deployment_monitor():
     monitor = CollisionMonitor(
         KAIROS.length, KAIROS.width, 720, 1.37, SafetyConfig(horizon=cfg.guard_horizon, time_step=CONTROL_DT)
     )
-    guard = jax.jit(jax.vmap(lambda c, r: nav.guard(c, r, cfg)))
+    from methd_jax import robot as robot_lib
+
+    servo = robot_lib.Robot().servo()  # a base at rest: the guard is the sweep
+    guard = jax.jit(jax.vmap(lambda c, r: nav.guard(c, r, cfg, jnp.zeros(3), servo)))
     rng = np.random.default_rng(2)
     ranges = rng.uniform(0.5, 5.0, (200, 720)).astype(np.float32)
     density = rng.uniform(0.0, 0.05, (200, 1))  # from open floor to clutter
@@ -144,6 +147,38 @@ def test_guard_agrees_with_the_deployment_monitor():
     scaled = np.linalg.norm(theirs, axis=1) < np.linalg.norm(commands, axis=1) - 1e-6
     assert 30 < scaled.sum() < 190  # the scenes exercise both outcomes
     np.testing.assert_allclose(ours, theirs, atol=1e-4)
+
+
+def test_guard_keeps_a_coasting_base_off_a_post():
+    # the base slides right at 1.5 m/s with a post ahead on its right and is told to go forward-left:
+    # the command's own sweep misses the post, the base's momentum does not
+    from methd_jax import lidar
+    from methd_jax import robot as robot_lib
+    from methd_jax.evaluation import safety_layer
+    from methd_jax.geometry import KAIROS
+
+    post = open_floor(circles=[(0.85, -0.85, 0.1)])
+    base, cfg = robot_lib.Robot(), nav.NavigatorConfig()
+    boundary, _ = KAIROS.ray_geometry(720)
+    command = jnp.array([0.8, 0.8, 0.0])
+
+    def closest(guarded: bool):
+        def body(data, _):
+            scan = lidar.scan(post, robot_lib.pose(data), num_rays=720)
+            if guarded:
+                c = nav.guard(command, scan, cfg, robot_lib.velocity(data), base.servo())
+            else:  # the sweep alone, as if the base moved as commanded
+                c = command * safety_layer.obstacle_scale(
+                    command, scan, cfg.guard_horizon, CONTROL_DT, cfg.guard_margin
+                )
+            data = base.step(data, c)
+            return data, jnp.min(lidar.scan(post, robot_lib.pose(data), num_rays=720) - boundary)
+
+        start = base.init(jnp.zeros(3)).replace(qvel=jnp.array([0.5, -1.5, 0.0]))
+        return float(jnp.min(jax.jit(lambda d: jax.lax.scan(body, d, None, length=60))(start)[1]))
+
+    assert closest(False) < -0.05  # the sweep alone lets it hit the post
+    assert closest(True) > 0.02
 
 
 def test_the_sweep_skips_only_points_beyond_its_reach():

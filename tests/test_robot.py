@@ -111,6 +111,37 @@ def test_thousands_of_robots_step_in_one_jitted_call(base):
     assert np.abs(a[:, :2]).max() >= 2.9  # and the limit is reached by these big commands
 
 
+def test_predict_follows_the_mjx_base(base):
+    # the servo model outside MJX against MJX itself: a base already moving and turning, driven by
+    # sustained commands and then braking, in the frame it started from
+    step = jax.jit(base.step)
+    data = base.init(jnp.array([1.0, -2.0, 0.7]))
+    for _ in range(40):
+        data = step(data, jnp.array([1.6, -0.8, 1.2]))
+    start, velocity = np.asarray(robot.pose(data)), robot.velocity(data)
+    commands = np.zeros((100, 3), np.float32)
+    commands[:50] = [-0.5, 2.0, -1.5]
+    commands[50:65] = [2.5, 0.0, 0.0]
+    poses = []
+    for c in commands:
+        data = step(data, jnp.asarray(c))
+        poses.append(np.asarray(robot.pose(data)))
+    poses = np.array(poses)
+    from methd_jax.geometry import to_local, wrap_angle
+
+    want = np.concatenate(
+        [
+            np.asarray(to_local(jnp.asarray(start), jnp.asarray(poses[:, :2]))),
+            np.asarray(wrap_angle(poses[:, 2:] - start[2])),
+        ],
+        1,
+    )
+    got = np.asarray(jax.jit(robot.predict, static_argnums=0)(base.servo(), velocity, jnp.asarray(commands)))
+    assert np.abs(want[:, :2]).max() > 0.5 and np.abs(want[:, 2]).max() > 1.0  # it went somewhere
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    assert base.servo().limit[:2] == pytest.approx((3.0, 3.0))  # 390 N on 130 kg, as the MJCF says
+
+
 def test_bad_config_is_rejected(tmp_path):
     coarse = tmp_path / "coarse.xml"  # 0.02 s is not a whole number of 0.003 s timesteps
     coarse.write_text(Path(RobotConfig().mjcf).read_text().replace('timestep="0.01"', 'timestep="0.003"'))

@@ -257,6 +257,7 @@ class Engine:
         self.cfg = cfg
         self.grid = nav.costmap(floor, cfg.navigator)
         self.robot = robot_lib.Robot()
+        self._servo = self.robot.servo()
         self._boundary, _ = KAIROS.ray_geometry(cfg.collision_rays)
         self._advance = jax.jit(self._advance_impl, static_argnums=(2,))
 
@@ -437,7 +438,7 @@ class Engine:
         direct = (mode == CHASE) & ~order.navigate
         command = jax.lax.cond(  # the sweep only when the base is to move (a parked base is not)
             ~direct & jnp.any(command != 0),
-            lambda: nav.guard(command, s.scan, ncfg),
+            lambda: nav.guard(command, s.scan, ncfg, robot_lib.velocity(s.robot), self._servo),
             lambda: command,
         )
         command = jnp.where(direct, order.command, command)

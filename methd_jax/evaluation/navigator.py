@@ -12,7 +12,9 @@ asks (``lax.cond``), so a 50 Hz loop does not pay for a plan every step.
 
 :func:`guard` is the local planner's footprint check (nav2's collision monitor, "approach"
 behaviour): the command is held over a horizon, the footprint swept along the arc against the
-latest scan, and the command scaled so that the sweep stops short of the first point it would hit.
+latest scan, and the command scaled so that the sweep stops short of the first point it would hit;
+then lowered further until the base, which carries its own velocity for a while, can still brake
+clear of the scan (:func:`methd_jax.robot.predict`).
 The plan and the follower only see the footprint's circumscribed disc on a 0.1 m grid; the guard
 sees the rectangle and the scan, which is what keeps a base that clips a corner, overshoots a goal
 beside a wall or brakes into a corner off the obstacles.
@@ -29,10 +31,12 @@ import numpy as np
 from flax import struct
 
 from methd_jax import floors
+from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT
-from methd_jax.evaluation.safety_layer import obstacle_scale
+from methd_jax.evaluation.safety_layer import path_extent, path_hits, sorted_points, sweep
 from methd_jax.floors import Floor
 from methd_jax.geometry import rotate, wrap_angle
+from methd_jax.robot import Servo
 
 UNREACHABLE = 1e9
 """Field value of cells the goal cannot be reached from."""
@@ -76,8 +80,8 @@ class NavigatorConfig:
     inflation_cost: float = 10.0
     """Cost multiplier at the lethal edge, falling linearly to 1 at ``inflation_radius``."""
     guard_horizon: float = 1.0
-    """Seconds the guard holds a command for its sweep: it covers the base's braking (3 m/s^2
-    stops 2 m/s in 0.7 s), so scaling to the last clear moment leaves room to stop."""
+    """Seconds the guard holds a command for its sweep, and lets the base brake for in its check
+    that the base can stop clear (3 m/s^2 stops 2 m/s in 0.7 s)."""
     guard_margin: float = 0.05
     """Added to every side of the footprint in the guard's sweep, m."""
 
@@ -280,16 +284,36 @@ def segment_clear(grid: Costmap, start: jax.Array, end: jax.Array, skip: float =
     return jnp.all(ok)
 
 
-def guard(command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig) -> jax.Array:
-    """``command`` (robot frame) scaled by the largest factor in [0, 1] whose sweep over
-    ``guard_horizon`` hits no scan point; ``ranges`` is a full-circle scan from the base's centre
-    (rays as :func:`methd_jax.geometry.ray_angles`, from the robot's heading).
+def guard(
+    command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig, velocity: jax.Array, servo: Servo
+) -> jax.Array:
+    """``command`` (robot frame) scaled so that the base neither sweeps into a scan point nor
+    coasts into one; ``ranges`` is a full-circle scan from the base's centre (rays as
+    :func:`methd_jax.geometry.ray_angles`, from the robot's heading), ``velocity`` the base's
+    robot-frame velocity and ``servo`` its servos (:meth:`methd_jax.robot.Robot.servo`).
 
-    Scaling is exact for static points: at factor s the base covers in the horizon T what the full
-    command covers in s T, so s is the last clear sample's time over T. Points already inside the
-    footprint are ignored (a contact that has happened: what is checked is what the command would
-    newly hit); points inside the margin are checked against the footprint itself, so the base may
-    back away from a close wall but not drive into it.
-    """
-    scale = obstacle_scale(command, ranges, cfg.guard_horizon, CONTROL_DT, cfg.guard_margin)
-    return command * scale
+    First the factor whose sweep over ``guard_horizon`` hits no scan point. Scaling is exact for
+    static points: at factor s the base covers in the horizon T what the full command covers in
+    s T, so s is the last clear sample's time over T. Points already inside the footprint are
+    ignored (a contact that has happened: what is checked is what the command would newly hit);
+    points inside the margin are checked against the footprint itself, so the base may back away
+    from a close wall but not drive into it.
+
+    The sweep takes the base to move as commanded, but it carries its own velocity for a while
+    (the servos' 0.1 s lag and 3 m/s^2): a base whose command turns away from a table can still
+    slide into it. So the factor is then lowered (halved, then zero) until the base, given the
+    scaled command for one control period and then braking for ``guard_horizon``, stays clear
+    along the path :func:`methd_jax.robot.predict` gives; when no factor does, it brakes."""
+    near = sorted_points(ranges)
+    s0 = sweep(command, *near, cfg.guard_horizon, CONTROL_DT, cfg.guard_margin)
+    brake = round(cfg.guard_horizon / CONTROL_DT)
+
+    def stoppable(s):
+        commands = jnp.zeros((1 + brake, 3)).at[0].set(s * command)
+        poses = robot_lib.predict(servo, velocity, commands)
+        extent = path_extent(poses, cfg.guard_margin)
+        return ~jnp.any(path_hits(poses, *near, cfg.guard_margin, extent))
+
+    scales = s0 * jnp.array([1.0, 0.5, 0.0])
+    ok = jax.vmap(stoppable)(scales)
+    return command * jnp.where(jnp.any(ok), scales[jnp.argmax(ok)], 0.0)

@@ -74,11 +74,21 @@ def sweep(command, ranges, points, horizon: float, time_step: float, margin: flo
     sweep's :func:`methd_jax.deploy.safety.reach` can stop it, so only the chunks of the nearest
     points that hold them are swept: the same factor as sweeping every point, at the cost of the
     points nearby."""
-    body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
-    half = body + margin
     steps = max(1, round(horizon / time_step))
     poses = arc(command, time_step * jnp.arange(1, steps + 1))
-    needed = jnp.sum(ranges <= reach(command, _radius(margin), horizon, jnp) + 0.01)  # 1 cm for rounding
+    hit = path_hits(poses, ranges, points, margin, reach(command, _radius(margin), horizon, jnp))
+    return jnp.where(jnp.any(hit), jnp.argmax(hit) / steps, 1.0)
+
+
+def path_hits(poses, ranges, points, margin: float, extent) -> jax.Array:
+    """(T,): whether the footprint plus ``margin``, moving from the origin through ``poses`` (T, 3)
+    (in the frame of the scan of :func:`sorted_points`), newly meets a scan point between one pose
+    and the next. Points within the footprint at the origin are ignored and points within the
+    margin are tested against the footprint itself (see :func:`obstacle_scale`); only points
+    nearer than ``extent`` (the farthest any part of the footprint gets) are tested."""
+    body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
+    half = body + margin
+    needed = jnp.sum(ranges <= extent + 0.01)  # 1 cm for rounding
     chunks = (needed + CHUNK - 1) // CHUNK
 
     def hits(c):  # (T,) whether a point of chunk c is newly hit between samples
@@ -93,9 +103,17 @@ def sweep(command, ranges, points, horizon: float, time_step: float, margin: flo
         return jnp.any(hit, axis=1)
 
     _, hit = jax.lax.while_loop(
-        lambda ch: ch[0] < chunks, lambda ch: (ch[0] + 1, ch[1] | hits(ch[0])), (0, jnp.zeros(steps, bool))
+        lambda ch: ch[0] < chunks,
+        lambda ch: (ch[0] + 1, ch[1] | hits(ch[0])),
+        (0, jnp.zeros(poses.shape[0], bool)),
     )
-    return jnp.where(jnp.any(hit), jnp.argmax(hit) / steps, 1.0)
+    return hit
+
+
+def path_extent(poses, margin: float) -> jax.Array:
+    """How far from the origin any part of the footprint plus ``margin`` gets at ``poses``: its
+    half-diagonal plus the farthest centre (turning moves no point farther from the centre)."""
+    return _radius(margin) + jnp.max(jnp.linalg.norm(poses[:, :2], axis=1))
 
 
 def slide(command: jax.Array, ranges: jax.Array, config: SafetyConfig) -> tuple[jax.Array, jax.Array]:
