@@ -88,6 +88,7 @@ class Policy:
                 ctx.present,
                 self.env.config.safety.collision_distance,
                 self.safety,
+                robot_lib.velocity(ctx.robot),
             )
         new = PolicyState(
             actions=jnp.concatenate([action[None], state.actions[:2]]),

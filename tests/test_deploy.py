@@ -218,6 +218,53 @@ def _newly_hits(command, ranges, horizon=1.0, dt=0.001) -> bool:
     return bool(np.any(inside[1:] & ~inside[:1]))
 
 
+def test_coast_is_the_simulated_base_with_the_default_limits():
+    # the monitor's coasting model with its defaults against the MJX base's own servo model (which
+    # tests/test_robot.py checks against MJX): a base moving and turning, driven and then braking
+    from methd_jax.deploy.safety import coast
+
+    rng = np.random.default_rng(4)
+    commands = np.zeros((60, 3))
+    commands[:20] = rng.uniform(-2, 2, 3)
+    velocity = np.array([1.2, -0.7, 0.9])
+    ours = coast(velocity, commands, SafetyConfig(), 0.02)
+    base = robot_lib.Robot()
+    theirs = np.asarray(
+        jax.jit(robot_lib.predict, static_argnums=0)(
+            base.servo(), jnp.asarray(velocity), jnp.asarray(commands)
+        )
+    )
+    assert np.abs(ours[:, :2]).max() > 0.5
+    np.testing.assert_allclose(ours, theirs, atol=2e-3)  # the MJCF's yaw servo: 9.998/s, 6.008 rad/s^2
+
+
+def test_monitor_keeps_a_coasting_base_off_a_post():
+    # the base slides right at 1.5 m/s with a post ahead on its right and the policy asks for
+    # forward-left: the sweep of that command misses the post, the base's momentum would not
+    from methd_jax import floors
+
+    post = floors.Floor.from_primitives(
+        [(0.85, -0.85, 0.1)], [], bounds=(-6, -6, 6, 6), max_circles=2, max_polygons=6
+    )
+    base, m = robot_lib.Robot(), _monitor()
+    boundary, _ = KAIROS.ray_geometry(720)
+    scan, step = jax.jit(lambda p: lidar.scan(post, p, num_rays=720)), jax.jit(base.step)
+    command = np.array([0.8, 0.8, 0.0])
+
+    def closest(told: bool) -> float:
+        data, gaps = base.init(jnp.zeros(3)).replace(qvel=jnp.array([0.5, -1.5, 0.0])), []
+        for _ in range(60):
+            ranges = np.asarray(scan(robot_lib.pose(data)), np.float64)
+            velocity = np.asarray(robot_lib.velocity(data), np.float64) if told else None
+            out, _ = m(command, ranges, np.zeros((0, 2)), np.zeros((0, 2)), velocity=velocity)
+            data = step(data, jnp.asarray(out, jnp.float32))
+            gaps.append(float(np.min(np.asarray(scan(robot_lib.pose(data))) - boundary)))
+        return min(gaps)
+
+    assert closest(False) < -0.05  # taken to be at rest, the monitor lets it hit the post
+    assert closest(True) > 0.02
+
+
 def test_arc_integrates_the_twist_for_one_command_or_many():
     rng = np.random.default_rng(1)
     commands = np.vstack([rng.uniform(-2, 2, (5, 3)), [[1.0, -0.5, 0.0]]])  # the last drives straight

@@ -231,7 +231,9 @@ def test_safety_layer_twin_agrees_with_the_deployment_monitor():
 
     config = SafetyConfig()
     monitor = CollisionMonitor(KAIROS.length, KAIROS.width, 720, 1.37, config)
-    twin = jax.jit(jax.vmap(lambda c, r, u, v, p: safety_layer.filter_command(c, r, u, v, p, 1.37, config)))
+    twin = jax.jit(
+        jax.vmap(lambda c, r, u, v, p, b: safety_layer.filter_command(c, r, u, v, p, 1.37, config, b))
+    )
     rng = np.random.default_rng(3)
     n = 200
     ranges = rng.uniform(0.45, 5.0, (n, 720)).astype(np.float32)
@@ -242,15 +244,22 @@ def test_safety_layer_twin_agrees_with_the_deployment_monitor():
     velocities = rng.uniform(-1.5, 1.5, (n, 2, 2)).astype(np.float32)
     present = np.ones((n, 2), bool)
     present[::3, 1] = False  # a user who left the scene is ignored
-    ours = np.asarray(twin(*map(jnp.asarray, (commands, ranges, users, velocities, present))))
-    theirs, reasons = [], []
-    for c, r, u, v, p in zip(commands, ranges, users, velocities, present, strict=True):
-        out, why = monitor(c.astype(np.float64), r.astype(np.float64), u[p], v[p])
+    base = rng.uniform([-2, -2, -1.5], [2, 2, 1.5], (n, 3)).astype(np.float32)
+    base[::2] = 0.0  # half of them at rest
+    ours = np.asarray(twin(*map(jnp.asarray, (commands, ranges, users, velocities, present, base))))
+    theirs, reasons, at_rest = [], [], []
+    for c, r, u, v, p, b in zip(commands, ranges, users, velocities, present, base, strict=True):
+        out, why = monitor(
+            c.astype(np.float64), r.astype(np.float64), u[p], v[p], velocity=b.astype(np.float64)
+        )
         theirs.append(out)
         reasons.append(why)
+        at_rest.append(monitor(c.astype(np.float64), r.astype(np.float64), u[p], v[p])[0])
     assert 20 < reasons.count("user") and 20 < reasons.count("obstacle") and 20 < reasons.count(None)
     slid = np.linalg.norm(np.cross(np.asarray(theirs), commands), axis=1) > 1e-6  # not a scaled command
     assert slid.sum() > 10  # the scenes exercise the slides too
+    braked = np.linalg.norm(np.asarray(theirs), axis=1) < np.linalg.norm(np.asarray(at_rest), axis=1) - 1e-6
+    assert braked.sum() > 5  # and the base's own velocity lowered some factors
     np.testing.assert_allclose(ours, np.asarray(theirs), atol=1e-4)
 
 

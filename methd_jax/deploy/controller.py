@@ -92,7 +92,12 @@ class Controller:
         self.watchdog = watchdog
         fp = d["footprint"]
         self.monitor = CollisionMonitor(
-            fp["length"], fp["width"], self.num_rays, d["collision_distance"], safety or SafetyConfig()
+            fp["length"],
+            fp["width"],
+            self.num_rays,
+            d["collision_distance"],
+            safety or SafetyConfig(),
+            period=self.dt,
         )
         self.interventions: collections.Counter[str] = collections.Counter()
         self.ticks = 0
@@ -189,7 +194,9 @@ class Controller:
             local = observation.to_local(pose, users[:, :2])
             local_vel = observation.rotate(-pose[2], users[:, 3:5])
             scan = None if x.scan_points is None else np.asarray(x.scan_points, np.float64)
-            safe, reason = self.monitor(cmd, np.asarray(x.ranges, np.float64), local, local_vel, scan)
+            safe, reason = self.monitor(
+                cmd, np.asarray(x.ranges, np.float64), local, local_vel, scan, velocity
+            )
             safe = clamp_to_limits(safe)
             if reason is not None:
                 self.interventions[f"safety:{reason}"] += 1

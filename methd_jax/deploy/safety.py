@@ -27,14 +27,19 @@ too.
 Points already inside the footprint at t = 0 are ignored (self-returns or a collision that has
 already happened): what is checked is what the command would newly hit. Points inside the margin
 but outside the footprint at t = 0 are checked against the footprint itself, so the robot may
-move away from a close wall but never into it. The base's finite
-deceleration is not modelled: the horizon (1 s by default) is chosen to cover it (3 m/s^2 stops
-1.2 m/s in 0.4 s).
+move away from a close wall but never into it.
+
+The sweep takes the base to move as commanded, but a base carries its own velocity for a while
+(its servos' response time, its finite deceleration): told to turn away from a table, it can still
+slide into it. So the factor is finally lowered (halved, then zero) until the base, given the
+scaled command for one control period and then braking for the horizon, stays clear of the scan
+along the path :func:`coast` predicts from its measured velocity; when no factor does, it brakes.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -57,6 +62,14 @@ class SafetyConfig:
     slide_angles: tuple[float, ...] = (30.0, 60.0)
     """Degrees, each in (0, 90): a blocked command's linear velocity is also tried turned by plus
     and minus each (empty: the command is only scaled)."""
+    deceleration: float = 3.0
+    """How hard the base brakes along each of its own axes, m/s^2 (the Kairos model's servo
+    limit). With ``yaw_deceleration`` and ``response_time`` it predicts how far the base coasts
+    (see :func:`coast`)."""
+    yaw_deceleration: float = 6.0
+    """How hard the base stops turning, rad/s^2."""
+    response_time: float = 0.1
+    """Time constant of the base's velocity servos, s."""
 
     def __post_init__(self):
         if not (self.horizon > 0 and 0 < self.time_step <= self.horizon):
@@ -67,6 +80,9 @@ class SafetyConfig:
             raise ValueError("user_steps must be >= 1")
         if not all(0.0 < float(a) < 90.0 for a in self.slide_angles):
             raise ValueError(f"slide_angles must each lie in (0, 90) degrees, got {self.slide_angles!r}")
+        for name in ("deceleration", "yaw_deceleration", "response_time"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
 
     def turns(self) -> np.ndarray:
         """(K, 3) rows (cos, sin, keep yaw) of the candidates in the order ties are broken: the command,
@@ -114,6 +130,31 @@ def arc(command: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.stack(np.broadcast_arrays(x, y, th), -1)
 
 
+def coast(velocity, commands, config: SafetyConfig, period: float) -> np.ndarray:
+    """Poses (x, y, yaw) ``(T, 3)`` after each of ``commands`` (T, 3), robot-frame twists held
+    ``period`` s each, of a base now at the origin moving at the robot-frame ``velocity``: per
+    robot axis the servo accelerates by ``(command - velocity) / response_time``, at most
+    ``deceleration`` (``yaw_deceleration``), integrated by explicit Euler at ``time_step`` (as
+    :func:`methd_jax.robot.predict` does for the simulated base)."""
+    # plain floats: a few hundred substeps of scalar arithmetic are cheaper than numpy's per-call cost
+    gain, lin, yaw = 1.0 / config.response_time, config.deceleration, config.yaw_deceleration
+    h = config.time_step
+    substeps = max(1, round(period / h))
+    x = y = th = 0.0
+    vx, vy, w = (float(v) for v in velocity)
+    out = np.empty((len(commands), 3))
+    for i, (cx, cy, cw) in enumerate(np.asarray(commands, np.float64).tolist()):
+        for _ in range(substeps):
+            c, s = math.cos(th), math.sin(th)
+            ax = min(max(gain * (cx - (c * vx + s * vy)), -lin), lin)  # along the robot's own axes
+            ay = min(max(gain * (cy - (-s * vx + c * vy)), -lin), lin)
+            aw = min(max(gain * (cw - w), -yaw), yaw)
+            vx, vy, w = vx + h * (c * ax - s * ay), vy + h * (s * ax + c * ay), w + h * aw
+            x, y, th = x + h * vx, y + h * vy, th + h * w
+        out[i] = (x, y, th)
+    return out
+
+
 def _local(poses: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(x, y), each (..., P): ``points`` (P, 2) in the frame of each pose (..., 3)."""
     c, s = np.cos(poses[..., 2:3]), np.sin(poses[..., 2:3])
@@ -150,9 +191,18 @@ class CollisionMonitor:
     """Scales robot-frame commands so that the footprint stays clear over the horizon."""
 
     def __init__(
-        self, length: float, width: float, num_rays: int, user_distance: float, config=SafetyConfig()
+        self,
+        length: float,
+        width: float,
+        num_rays: int,
+        user_distance: float,
+        config=SafetyConfig(),
+        period: float = 0.02,
     ):
+        """``period``: the control period, s (how long the base holds each command)."""
         self.config = config
+        self.period = period
+        self.brake_steps = round(config.horizon / period)
         self.body = np.array([0.5 * length, 0.5 * width])
         self.half = self.body + config.margin
         self.reach_radius = float(np.hypot(*self.half))
@@ -258,21 +308,65 @@ class CollisionMonitor:
         bad = np.any((d < self.user_distance) & (d < still[None] - 1e-9), axis=(1, 2))
         return float(scales[np.argmin(bad)]) if not bad.all() else 0.0
 
-    def __call__(self, command, ranges, users, velocities, scan=None) -> tuple[np.ndarray, str | None]:
+    def path_clear(self, poses: np.ndarray, points: np.ndarray) -> bool:
+        """Whether the footprint plus margin, moving from the origin through ``poses`` (T, 3), newly
+        meets none of ``points`` between one pose and the next (the sweep's test on any path)."""
+        origin = np.zeros((1, 3))
+        in_body = self._inside(origin, points, self.body)[0]
+        in_margin = self._inside(origin, points, self.half)[0] & ~in_body
+        points, in_margin = points[~in_body], in_margin[~in_body]
+        if len(points) == 0:
+            return True
+        half = np.stack(
+            [
+                np.where(in_margin, self.body[0], self.half[0]),
+                np.where(in_margin, self.body[1], self.half[1]),
+            ],
+            -1,
+        )
+        qx, qy = _local(poses, points)  # (T, P)
+        end = np.stack([qx, qy], -1)
+        start = np.concatenate([points[None], end[:-1]])
+        return not np.any(segment_meets_box(start, end, half[None]))
+
+    def brake_scale(
+        self, command: np.ndarray, upper: float, velocity: np.ndarray, points: np.ndarray
+    ) -> float:
+        """The first of ``upper``, half of it and 0 at which the base, given ``command`` times it
+        for one control period and then braking for the horizon, stays clear of ``points`` (every
+        return, robot frame) along the path :func:`coast` predicts from ``velocity``; 0 if none."""
+        for factor in (upper, 0.5 * upper, 0.0):
+            commands = np.zeros((1 + self.brake_steps, 3))
+            commands[0] = factor * command
+            poses = coast(velocity, commands, self.config, self.period)
+            extent = self.reach_radius + np.max(np.linalg.norm(poses[:, :2], axis=1)) + 0.01
+            if self.path_clear(poses, points[np.linalg.norm(points, axis=1) < extent]):
+                return factor
+        return 0.0
+
+    def __call__(
+        self, command, ranges, users, velocities, scan=None, velocity=None
+    ) -> tuple[np.ndarray, str | None]:
         """(filtered command, what limited it: None, "obstacle" or "user").
 
         ``scan`` (M, 2): the sensor's own returns in the robot frame at its full resolution (see
         :func:`methd_jax.deploy.mcap_replay.scan_points`); when given, obstacles are checked against
-        it instead of ``ranges``, so a pole thinner than the gap between the policy's rays is seen."""
+        it instead of ``ranges``, so a pole thinner than the gap between the policy's rays is seen.
+        ``velocity``: the base's robot-frame velocity (vx, vy, wz); without it the base is taken to
+        be at rest."""
         command = np.asarray(command, np.float64)
         if not self.config.enabled or not np.any(command):
             return command, None
         if scan is None:
-            points = self.points(ranges, command)
+            ok = np.isfinite(ranges)
+            every = ranges[ok, None] * self.directions[ok]
         else:
-            points = scan[np.linalg.norm(scan, axis=1) < self._reach(command)]
+            every = np.asarray(scan, np.float64)
+        points = every[np.linalg.norm(every, axis=1) < self._reach(command)]
         chosen, s_obstacle = self.slide(command, points)
-        s = self.user_scale(chosen, s_obstacle, users, velocities)
-        changed = s_obstacle < 1.0 or not np.array_equal(chosen, command)
-        reason = "user" if s < s_obstacle else ("obstacle" if changed else None)
+        s_user = self.user_scale(chosen, s_obstacle, users, velocities)
+        v = np.zeros(3) if velocity is None else np.asarray(velocity, np.float64)
+        s = self.brake_scale(chosen, s_user, v, every)
+        changed = s_obstacle < 1.0 or s < s_user or not np.array_equal(chosen, command)
+        reason = "user" if s_user < s_obstacle and s == s_user else ("obstacle" if changed else None)
         return chosen * s, reason

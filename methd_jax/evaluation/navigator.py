@@ -31,9 +31,8 @@ import numpy as np
 from flax import struct
 
 from methd_jax import floors
-from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT
-from methd_jax.evaluation.safety_layer import path_extent, path_hits, sorted_points, sweep
+from methd_jax.evaluation.safety_layer import brake_scale, sorted_points, sweep
 from methd_jax.floors import Floor
 from methd_jax.geometry import rotate, wrap_angle
 from methd_jax.robot import Servo
@@ -306,14 +305,4 @@ def guard(
     along the path :func:`methd_jax.robot.predict` gives; when no factor does, it brakes."""
     near = sorted_points(ranges)
     s0 = sweep(command, *near, cfg.guard_horizon, CONTROL_DT, cfg.guard_margin)
-    brake = round(cfg.guard_horizon / CONTROL_DT)
-
-    def stoppable(s):
-        commands = jnp.zeros((1 + brake, 3)).at[0].set(s * command)
-        poses = robot_lib.predict(servo, velocity, commands)
-        extent = path_extent(poses, cfg.guard_margin)
-        return ~jnp.any(path_hits(poses, *near, cfg.guard_margin, extent))
-
-    scales = s0 * jnp.array([1.0, 0.5, 0.0])
-    ok = jax.vmap(stoppable)(scales)
-    return command * jnp.where(jnp.any(ok), scales[jnp.argmax(ok)], 0.0)
+    return command * brake_scale(command, s0, velocity, *near, servo, cfg.guard_horizon, cfg.guard_margin)

@@ -2,7 +2,8 @@
 
 :class:`methd_jax.deploy.safety.CollisionMonitor` (numpy, on the robot) holds the command over a
 horizon, sweeps the footprint plus a margin along the arc against the scan's points and the users
-(extrapolated at their velocity), and scales the command down to the largest clear factor. This
+(extrapolated at their velocity), scales the command down to the largest clear factor, and lowers
+that factor further unless the base could still brake clear from its present velocity. This
 module computes the same factor inside ``jit`` so that the behaviour engine can put the layer
 between a trained policy and the base; ``tests/test_evaluation.py`` checks it against the numpy
 monitor on random scenes. Everything is in the robot frame at the moment of the command.
@@ -14,8 +15,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from methd_jax import robot as robot_lib
+from methd_jax.control import CONTROL_DT
 from methd_jax.deploy.safety import SafetyConfig, candidates, change, reach, segment_meets_box
 from methd_jax.geometry import KAIROS, ray_angles, to_local
+from methd_jax.robot import Servo
 
 
 def _times(config: SafetyConfig) -> np.ndarray:
@@ -164,6 +168,33 @@ def user_scale(
     return jnp.where(jnp.all(bad), 0.0, scales[jnp.argmin(bad)])
 
 
+def brake_scale(command, upper, velocity, ranges, points, servo: Servo, horizon: float, margin: float):
+    """The first of ``upper``, half of it and 0 at which the base, given ``command`` times it for
+    one control period and then braking for ``horizon``, stays clear of the scan of
+    :func:`sorted_points` along the path :func:`methd_jax.robot.predict` gives from its robot-frame
+    ``velocity``; 0 if none (see :meth:`methd_jax.deploy.safety.CollisionMonitor.brake_scale`)."""
+    brake = round(horizon / CONTROL_DT)
+
+    def stoppable(factor):
+        commands = jnp.zeros((1 + brake, 3)).at[0].set(factor * command)
+        poses = robot_lib.predict(servo, velocity, commands)
+        return ~jnp.any(path_hits(poses, ranges, points, margin, path_extent(poses, margin)))
+
+    factors = upper * jnp.array([1.0, 0.5, 0.0])
+    ok = jax.vmap(stoppable)(factors)
+    return jnp.where(jnp.any(ok), factors[jnp.argmax(ok)], 0.0)
+
+
+def servo(config: SafetyConfig) -> Servo:
+    """The base's servos as ``config`` describes them, for :func:`brake_scale`."""
+    gain = 1.0 / config.response_time
+    return Servo(
+        gain=(gain, gain, gain),
+        limit=(config.deceleration, config.deceleration, config.yaw_deceleration),
+        timestep=config.time_step,
+    )
+
+
 def filter_command(
     command: jax.Array,
     ranges: jax.Array,
@@ -172,12 +203,15 @@ def filter_command(
     present: jax.Array,
     user_distance: float,
     config: SafetyConfig | None = None,
+    velocity: jax.Array | None = None,
 ) -> jax.Array:
     """``command`` scaled as :class:`methd_jax.deploy.safety.CollisionMonitor` scales it (``config``:
-    default :class:`SafetyConfig`)."""
+    default :class:`SafetyConfig`; ``velocity``: the base's robot-frame velocity, default at rest)."""
     config = config or SafetyConfig()
     if not config.enabled:
         return command
     chosen, s = slide(command, ranges, config)
     s = user_scale(chosen, s, users, velocities, present, user_distance, config)
+    velocity = jnp.zeros(3) if velocity is None else velocity
+    s = brake_scale(chosen, s, velocity, *sorted_points(ranges), servo(config), config.horizon, config.margin)
     return jnp.where(jnp.any(command != 0), chosen * s, command)
