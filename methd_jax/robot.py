@@ -150,7 +150,7 @@ def predict(servo: Servo, velocity: jax.Array, commands: jax.Array) -> jax.Array
     speed limits."""
     gain, limit = jnp.asarray(servo.gain), jnp.asarray(servo.limit)
     h = servo.timestep
-    substeps = round(CONTROL_DT / h)
+    substeps = max(1, round(CONTROL_DT / h))
 
     def substep(state, command):
         xy, th, v, w = state  # v: the linear velocity in the start frame

@@ -52,7 +52,8 @@ class SafetyConfig:
     horizon: float = 1.0
     """Seconds the command is projected forward."""
     time_step: float = 0.01
-    """Sampling of the sweep, s (0.01 s at 3 m/s is 3 cm, inside the margin)."""
+    """Sampling of the sweep, s (0.01 s at 3 m/s is 3 cm, inside the margin), and the integration
+    step of :func:`coast`."""
     margin: float = 0.05
     """Added to every side of the footprint, m."""
     user_distance: float | None = None
