@@ -228,6 +228,18 @@ class CollisionMonitor:
         qx, qy = _local(poses, points)
         return (np.abs(qx) <= half[0]) & (np.abs(qy) <= half[1])
 
+    def _new_points(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The points a motion can newly hit and the half-sizes (hx, hy), each (P,), of the box each
+        must stay out of: points inside the footprint are dropped (a contact that has happened),
+        points inside the margin are held to the footprint itself, the rest to footprint + margin."""
+        origin = np.zeros((1, 3))
+        in_body = self._inside(origin, points, self.body)[0]
+        in_margin = self._inside(origin, points, self.half)[0] & ~in_body
+        points, in_margin = points[~in_body], in_margin[~in_body]
+        hx = np.where(in_margin, self.body[0], self.half[0])
+        hy = np.where(in_margin, self.body[1], self.half[1])
+        return points, hx, hy
+
     def obstacle_scale(self, command: np.ndarray, points: np.ndarray) -> float:
         """The largest s in [0, 1] whose sweep hits no new scan point."""
         return float(self.obstacle_scales(np.asarray(command)[None], points)[0])
@@ -237,14 +249,9 @@ class CollisionMonitor:
         scales = np.ones(len(commands))
         if len(points) == 0 or len(commands) == 0:
             return scales
-        origin = np.zeros((1, 3))
-        in_body = self._inside(origin, points, self.body)[0]
-        in_margin = self._inside(origin, points, self.half)[0] & ~in_body
-        points, in_margin = points[~in_body], in_margin[~in_body]
+        points, hx, hy = self._new_points(points)
         if len(points) == 0:
             return scales
-        hx = np.where(in_margin, self.body[0], self.half[0])  # (P,): the box each point must stay out of
-        hy = np.where(in_margin, self.body[1], self.half[1])
         todo = np.arange(len(commands))  # the candidates not yet blocked
         px = np.broadcast_to(points[:, 0], (len(todo), len(points)))  # each point one sample earlier
         py = np.broadcast_to(points[:, 1], (len(todo), len(points)))
@@ -312,23 +319,13 @@ class CollisionMonitor:
     def path_clear(self, poses: np.ndarray, points: np.ndarray) -> bool:
         """Whether the footprint plus margin, moving from the origin through ``poses`` (T, 3), newly
         meets none of ``points`` between one pose and the next (the sweep's test on any path)."""
-        origin = np.zeros((1, 3))
-        in_body = self._inside(origin, points, self.body)[0]
-        in_margin = self._inside(origin, points, self.half)[0] & ~in_body
-        points, in_margin = points[~in_body], in_margin[~in_body]
+        points, hx, hy = self._new_points(points)
         if len(points) == 0:
             return True
-        half = np.stack(
-            [
-                np.where(in_margin, self.body[0], self.half[0]),
-                np.where(in_margin, self.body[1], self.half[1]),
-            ],
-            -1,
-        )
         qx, qy = _local(poses, points)  # (T, P)
         end = np.stack([qx, qy], -1)
         start = np.concatenate([points[None], end[:-1]])
-        return not np.any(segment_meets_box(start, end, half[None]))
+        return not np.any(segment_meets_box(start, end, np.stack([hx, hy], -1)[None]))
 
     def brake_scale(
         self, command: np.ndarray, upper: float, velocity: np.ndarray, points: np.ndarray

@@ -120,13 +120,12 @@ def path_extent(poses, margin: float) -> jax.Array:
     return _radius(margin) + jnp.max(jnp.linalg.norm(poses[:, :2], axis=1))
 
 
-def slide(command: jax.Array, ranges: jax.Array, config: SafetyConfig) -> tuple[jax.Array, jax.Array]:
+def slide(command: jax.Array, near: tuple, config: SafetyConfig) -> tuple[jax.Array, jax.Array]:
     """(candidate, its clear factor) as :meth:`methd_jax.deploy.safety.CollisionMonitor.slide`: the
     command and :func:`obstacle_scale` unless that blocks it, else the candidate of
-    :meth:`SafetyConfig.turns`, scaled to its own clear factor, closest to the command."""
+    :meth:`SafetyConfig.turns`, scaled to its own clear factor, closest to the command. ``near``:
+    the scan as :func:`sorted_points` gives it."""
     turns = config.turns()
-
-    near = sorted_points(ranges)  # sorted once for the command and its candidates
 
     def scale(c):
         return sweep(c, *near, config.horizon, config.time_step, config.margin)
@@ -210,8 +209,9 @@ def filter_command(
     config = config or SafetyConfig()
     if not config.enabled:
         return command
-    chosen, s = slide(command, ranges, config)
+    near = sorted_points(ranges)  # sorted once for the sweeps and the brake check
+    chosen, s = slide(command, near, config)
     s = user_scale(chosen, s, users, velocities, present, user_distance, config)
     velocity = jnp.zeros(3) if velocity is None else velocity
-    s = brake_scale(chosen, s, velocity, *sorted_points(ranges), servo(config), config.horizon, config.margin)
+    s = brake_scale(chosen, s, velocity, *near, servo(config), config.horizon, config.margin)
     return jnp.where(jnp.any(command != 0), chosen * s, command)
