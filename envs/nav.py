@@ -14,7 +14,9 @@ Observation (all in the robot frame; ``observation_layout`` names every slice):
 ``previous_action``         3      a_{t-1}
 ``previous_action_2``       3      a_{t-2}
 ``user<i>`` (per user)      8      p_u (2), v_u (vx, vy, wz), phi_u (bearing of the robot from the
-                                   user's heading), theta_u (bearing of the user from the robot), d_u
+                                   user's heading), theta_u (bearing of the user from the robot), d_u;
+                                   users in a fixed order, or the goal's user first
+                                   (``NavConfig.users_by_goal``)
 ``goal``                    5      p_g (2, dead zone 5 mm), d_g, theta_g (0 within 0.2 m), dyaw_g
                                    (dead zone 0.00436 rad)
 ==========================  =====  ==================================================================
@@ -126,6 +128,11 @@ class NavConfig:
     :func:`methd_jax.geometry.path_around_discs`) instead of the straight line, so that a base
     behind a user or a piece of furniture is paid for going round it rather than for pressing
     toward the goal through it (the thesis: the straight distance)."""
+    users_by_goal: bool = False
+    """The observation lists the users nearest-first by the distance from the goal to each one's
+    HIP (placed by ``hip`` from the user's present pose) instead of in a fixed order, so that the
+    user the goal belongs to (once GuideRL has chosen) is always in the first slot: where a policy
+    started from the SU policy saw its only user (the thesis: a fixed order)."""
     users_visible: bool = False
     """Users appear to the LiDAR as leg-height cylinders (the thesis's LiDAR could not see them)."""
     user_radius: float = USER_RADIUS
@@ -156,7 +163,7 @@ class NavConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise ValueError(f"{name} must be an integer, got {value!r}")
-        for name in ("lab", "users_visible", "distance_around", "randomize_dynamics"):
+        for name in ("lab", "users_visible", "users_by_goal", "distance_around", "randomize_dynamics"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
         for f in dataclasses.fields(self):
@@ -200,6 +207,16 @@ class NavConfig:
         for name in ("cooldown", "time_limit", "lidar_range", "user_radius"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+
+
+def goal_user_order(user_pose: jax.Array, goal: jax.Array, hip: HipConfig) -> jax.Array:
+    """Indices of the users (poses (N, 3): x, y, yaw) ordered by the distance from ``goal`` to each
+    one's HIP as ``hip`` places it from that pose, nearest first; ties keep their order."""
+    c, s = jnp.cos(user_pose[:, 2]), jnp.sin(user_pose[:, 2])
+    hip_xy = user_pose[:, :2] + jnp.stack(
+        [c * hip.distance - s * hip.lateral, s * hip.distance + c * hip.lateral], 1
+    )
+    return jnp.argsort(jnp.linalg.norm(hip_xy - goal[:2], axis=1), stable=True)
 
 
 def observation_layout(num_users: int, num_rays: int = lidar.NUM_RAYS) -> dict[str, slice]:
@@ -528,6 +545,8 @@ class NavEnv(Env):
         to_robot = pose[:2] - user_xy
         phi_u = wrap_angle(jnp.arctan2(to_robot[:, 1], to_robot[:, 0]) - users["pose"][:, 2])
         s_u = jnp.concatenate([p_u, v_u, phi_u[:, None], theta_u[:, None], d_u[:, None]], 1)
+        if cfg.users_by_goal:
+            s_u = s_u[goal_user_order(users["pose"], w.goal, cfg.hip)]
 
         p_g = to_local(pose, w.goal[:2])
         d_g = jnp.linalg.norm(p_g)

@@ -178,10 +178,50 @@ def test_observation_and_command_match_the_env_term_by_term(su_env):
         np.testing.assert_allclose(observation.command(d, a, prev), expected, atol=1e-6)
 
 
-def _manifest_of(env) -> dict:
+def test_users_ordered_by_the_goal_match_the_env_and_put_the_goals_user_first():
+    """``NavConfig.users_by_goal``: the user whose HIP the goal is at fills the first user slot,
+    in the env and in the deployment's numpy observation alike."""
+    cfg = NavConfig(num_users=2, motion="sample", split="all", lab=True, lidar_noise=0.0, lidar_dropout=0.0)
+    fixed, ordered = NavEnv(cfg), NavEnv(dataclasses.replace(cfg, users_by_goal=True))
+    state = jax.jit(fixed.reset)(jax.random.key(4))
+    w = state.pipeline_state
+    x = _inputs(fixed, state)
+    user = fixed.observation_layout["user0"]
+    slot = user.stop - user.start
+    d = export.deployment_section(_manifest_of(ordered, "nav"))
+    assert d["user_order"] == "goal" and d["hip"] == {"distance": 2.0, "lateral": -0.3}
+    assert export.deployment_section(_manifest_of(fixed, "nav"))["user_order"] == "fixed"
+    c, s = np.cos(x.users[:, 2]), np.sin(x.users[:, 2])
+    hips = x.users[:, :2] + np.stack([2.0 * c + 0.3 * s, 2.0 * s - 0.3 * c], 1)
+    action = np.array([0.2, -0.1, 0.3])
+    for k in (0, 1):
+        goal = np.array([*hips[k], 0.5])
+        wk = w.replace(goal=jnp.asarray(goal, jnp.float32))
+        key = jax.random.key(0)
+        base = np.asarray(fixed.observe(wk, jnp.asarray(action, jnp.float32), key)[0])
+        obs = np.asarray(ordered.observe(wk, jnp.asarray(action, jnp.float32), key)[0])
+        users = base[user.start : user.start + 2 * slot].reshape(2, slot)
+        np.testing.assert_array_equal(obs[user.start : user.start + slot], users[k])
+        np.testing.assert_array_equal(obs[user.start + slot : user.start + 2 * slot], users[1 - k])
+        rest = np.r_[0 : user.start, user.start + 2 * slot : len(obs)]
+        np.testing.assert_array_equal(obs[rest], base[rest])  # nothing else moves
+        obs_np = observation.observe(
+            d,
+            ranges=x.ranges,
+            robot_pose=x.robot_pose,
+            velocity=x.velocity,
+            acceleration=(x.velocity - np.asarray(w.velocity)) * 50.0,
+            actions=np.stack([action, np.asarray(w.actions[0])]),
+            users=x.users,
+            goal=goal,
+        )
+        np.testing.assert_allclose(obs_np, obs, atol=2e-5, rtol=1e-5)
+
+
+def _manifest_of(env, name: str = "su") -> dict:
     layout = {k: [s.start, s.stop] for k, s in env.observation_layout.items()}
     return {
-        "env": "su",
+        "env": name,
         "env_config": jsonable(env.config),
         "observation_layout": layout,
         "observation_clip": 5.0,
@@ -597,6 +637,8 @@ def _set(path, value):
         (_set(["deployment", "action", "scale"], [300, 300, 200]), None, "exceeds the base's limits"),
         (_set(["deployment", "control_hz"], 0), None, "control_hz must be positive"),
         (lambda m: m["deployment"].pop("footprint"), None, "missing or malformed field"),
+        (_set(["deployment", "user_order"], "by_name"), None, "neither 'fixed' nor 'goal'"),
+        (_set(["deployment", "user_order"], "goal"), None, "needs hip.distance and hip.lateral"),
         (None, {"manifest.json": b"{not json"}, "not valid JSON"),
         (None, {"params.npz": b"PK\x03\x04 truncated"}, "params.npz: unreadable"),
         (None, {"policy.onnx": b""}, "does not match the manifest's onnx_sha256"),

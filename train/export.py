@@ -221,7 +221,17 @@ def deployment_section(manifest: dict) -> dict:
         "footprint": {"length": KAIROS.length, "width": KAIROS.width, "radius": KAIROS.radius},
         "collision_distance": safety["collision_distance"],
         "critical_distance": safety["critical_distance"],
+        **_user_order(env),
     }
+
+
+def _user_order(env: dict) -> dict:
+    """How the observation orders the users: as given, or (``NavConfig.users_by_goal``) by the
+    distance from the goal to each user's HIP, placed this far ahead of and beside the user."""
+    if not env.get("users_by_goal", False):
+        return {"user_order": "fixed"}
+    hip = env["hip"]
+    return {"user_order": "goal", "hip": {"distance": hip["distance"], "lateral": hip["lateral"]}}
 
 
 def versions() -> dict:

@@ -2,7 +2,8 @@
 
 Mirrors ``envs.nav.NavEnv.observe`` and ``NavEnv.command`` term by term (tests hold the two
 together): LiDAR clamped to the training range, robot velocity and acceleration, the last two
-policy actions, per user (p_u, v_u, phi_u, theta_u, d_u) in the robot frame, and the goal with its
+policy actions, per user (p_u, v_u, phi_u, theta_u, d_u) in the robot frame (in the order the
+deployment's ``user_order`` names: as given, or the goal's user first), and the goal with its
 dead zones. The deployed robot sees no simulated noise: ranges are only clamped.
 """
 
@@ -33,6 +34,16 @@ def rotate(yaw, vectors: np.ndarray) -> np.ndarray:
     )
 
 
+def goal_user_order(users: np.ndarray, goal: np.ndarray, hip: dict) -> np.ndarray:
+    """Indices of ``users`` (N, >= 3: x, y, yaw, ...) nearest-first by the distance from ``goal``
+    to each one's HIP, ``hip["distance"]`` ahead of and ``hip["lateral"]`` to the left of the user
+    (numpy twin of ``envs.nav.goal_user_order``)."""
+    c, s = np.cos(users[:, 2]), np.sin(users[:, 2])
+    ahead, left = hip["distance"], hip["lateral"]
+    hip_xy = users[:, :2] + np.stack([c * ahead - s * left, s * ahead + c * left], 1)
+    return np.argsort(np.linalg.norm(hip_xy - np.asarray(goal[:2]), axis=1), kind="stable")
+
+
 def observe(
     deployment: dict,
     *,
@@ -55,6 +66,8 @@ def observe(
     pose = np.asarray(robot_pose, np.float64)
     scan = np.clip(np.minimum(ranges, lidar["max_range"]), 0.0, lidar["max_range"])
 
+    if deployment.get("user_order", "fixed") == "goal":
+        users = users[goal_user_order(users, goal, deployment["hip"])]
     user_xy = users[:, :2]
     p_u = to_local(pose, user_xy)
     d_u = np.linalg.norm(p_u, axis=1)

@@ -106,6 +106,14 @@ def _check(manifest: dict, path: Path) -> None:
             f"{file}: footprint {fp['length']} x {fp['width']} m is not the base's "
             f"{ROBOT_FOOTPRINT[0]} x {ROBOT_FOOTPRINT[1]} m"
         )
+    order = d.get("user_order", "fixed")  # folders exported before the field had a fixed order
+    if order not in ("fixed", "goal"):
+        raise DeployError(f"{file}: user_order {order!r} is neither 'fixed' nor 'goal'")
+    if order == "goal":
+        hip = d.get("hip")
+        offsets = [hip.get(k) for k in ("distance", "lateral")] if isinstance(hip, dict) else [None]
+        if not all(isinstance(v, int | float) and math.isfinite(v) for v in offsets):
+            raise DeployError(f"{file}: user_order 'goal' needs hip.distance and hip.lateral in metres")
     scale = np.asarray(d["action"]["scale"], float)
     limit = np.array([ROBOT_LIMITS[0], ROBOT_LIMITS[0], ROBOT_LIMITS[1]])
     if scale.shape != (3,) or not np.all((scale > 0) & (scale <= limit + 1e-9)):
