@@ -159,16 +159,7 @@ def test_observation_and_command_match_the_env_term_by_term(su_env):
     # acceleration from w.velocity
     obs_env, _, _ = su_env.observe(w, jnp.asarray(action, jnp.float32), jax.random.key(0))
     d = export.deployment_section(_manifest_of(su_env))
-    obs_np = observation.observe(
-        d,
-        ranges=x.ranges,
-        robot_pose=x.robot_pose,
-        velocity=x.velocity,
-        acceleration=(x.velocity - np.asarray(w.velocity)) * 50.0,
-        actions=np.stack([action, np.asarray(w.actions[0])]),
-        users=x.users,
-        goal=x.goal,
-    )
+    obs_np = _numpy_observation(d, x, w, action, x.goal)
     np.testing.assert_allclose(obs_np, np.asarray(obs_env), atol=2e-5, rtol=1e-5)
     for _ in range(100):
         a, prev = rng.uniform(-1, 1, 3), rng.uniform(-1, 1, (2, 3))
@@ -205,17 +196,22 @@ def test_users_ordered_by_the_goal_match_the_env_and_put_the_goals_user_first():
         np.testing.assert_array_equal(obs[user.start + slot : user.start + 2 * slot], users[1 - k])
         rest = np.r_[0 : user.start, user.start + 2 * slot : len(obs)]
         np.testing.assert_array_equal(obs[rest], base[rest])  # nothing else moves
-        obs_np = observation.observe(
-            d,
-            ranges=x.ranges,
-            robot_pose=x.robot_pose,
-            velocity=x.velocity,
-            acceleration=(x.velocity - np.asarray(w.velocity)) * 50.0,
-            actions=np.stack([action, np.asarray(w.actions[0])]),
-            users=x.users,
-            goal=goal,
-        )
-        np.testing.assert_allclose(obs_np, obs, atol=2e-5, rtol=1e-5)
+        np.testing.assert_allclose(_numpy_observation(d, x, w, action, goal), obs, atol=2e-5, rtol=1e-5)
+
+
+def _numpy_observation(d: dict, x: deploy.Inputs, w, action: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """The deployment's observation of ``x`` as ``env.observe(w, action)`` builds it (``action`` as
+    a_{t-1}, ``w.actions[0]`` as a_{t-2}, the acceleration from ``w.velocity``)."""
+    return observation.observe(
+        d,
+        ranges=x.ranges,
+        robot_pose=x.robot_pose,
+        velocity=x.velocity,
+        acceleration=(x.velocity - np.asarray(w.velocity)) * 50.0,
+        actions=np.stack([action, np.asarray(w.actions[0])]),
+        users=x.users,
+        goal=goal,
+    )
 
 
 def _manifest_of(env, name: str = "su") -> dict:
