@@ -213,9 +213,7 @@ def goal_user_order(user_pose: jax.Array, goal: jax.Array, hip: HipConfig) -> ja
     """Indices of the users (poses (N, 3): x, y, yaw) ordered by the distance from ``goal`` to each
     one's HIP as ``hip`` places it from that pose, nearest first; ties keep their order."""
     c, s = jnp.cos(user_pose[:, 2]), jnp.sin(user_pose[:, 2])
-    hip_xy = user_pose[:, :2] + jnp.stack(
-        [c * hip.distance - s * hip.lateral, s * hip.distance + c * hip.lateral], 1
-    )
+    hip_xy = user_pose[:, :2] + jnp.stack(hip.offset(c, s), 1)
     return jnp.argsort(jnp.linalg.norm(hip_xy - goal[:2], axis=1), stable=True)
 
 

@@ -42,6 +42,11 @@ class HipConfig:
     """Standard deviation (s) of the Gaussian that steadies the user heading used for the HIP, so
     that glancing around does not swing the HIP."""
 
+    def offset(self, c, s):
+        """(dx, dy) from a user to their HIP, for a heading of cosine ``c`` and sine ``s`` (floats,
+        numpy or JAX arrays alike)."""
+        return c * self.distance - s * self.lateral, s * self.distance + c * self.lateral
+
 
 def user_features(traj: Trajectory, hip: HipConfig = HipConfig()) -> dict[str, np.ndarray]:
     """Per-step features of one trajectory at ``CONTROL_HZ`` (numpy, float64).
@@ -71,7 +76,7 @@ def user_features(traj: Trajectory, hip: HipConfig = HipConfig()) -> dict[str, n
     steady = gaussian_smooth(yaw_vec, hip.heading_smoothing * CONTROL_HZ)
     h_yaw = np.arctan2(steady[:, 1], steady[:, 0])
     ch, sh = np.cos(h_yaw), np.sin(h_yaw)
-    hip_xy = xy + np.stack([ch * hip.distance - sh * hip.lateral, sh * hip.distance + ch * hip.lateral], 1)
+    hip_xy = xy + np.stack(hip.offset(ch, sh), 1)
     hip_yaw = np.arctan2(np.sin(h_yaw + hip.yaw_offset), np.cos(h_yaw + hip.yaw_offset))
     wrist_z = (
         gaussian_smooth(traj.wrist[:, 2:3], 2.0)[::step, 0]

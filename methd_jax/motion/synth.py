@@ -197,7 +197,7 @@ def _facing(room: _Room, xy: np.ndarray, yaw: float, clearance: float) -> float:
         turn = math.radians(20 * ((k + 1) // 2)) * (1 if k % 2 else -1)
         h = yaw + turn
         c, s = math.cos(h), math.sin(h)
-        spot = xy + np.array([c * hip.distance - s * hip.lateral, s * hip.distance + c * hip.lateral])
+        spot = xy + np.array(hip.offset(c, s))
         if room.clear(spot, clearance):
             return h
     return yaw
