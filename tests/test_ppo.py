@@ -13,7 +13,7 @@ import pytest
 from conftest import TINY_RUN
 
 from train import ppo
-from train.presets import apply_overrides, preset
+from train.presets import ConfigError, apply_overrides, preset
 from train.run import NonFiniteError, build, train
 
 TINY = (*TINY_RUN, "checkpoint_every=2")
@@ -93,6 +93,36 @@ def test_ppo_loss_matches_a_python_loop():
     np.testing.assert_allclose(loss, want, rtol=1e-5)
     np.testing.assert_allclose(parts["loss/policy"], np.mean(pol), rtol=1e-5)
     np.testing.assert_allclose(parts["policy/kl"], np.mean(kl), rtol=1e-4)
+
+
+def test_the_anchor_penalty_is_the_kl_from_the_start_policy():
+    rng = np.random.default_rng(4)
+    B, A = 9, 2
+    mean, anchor = rng.normal(size=(B, A)), rng.normal(size=(B, A))
+    log_std = rng.normal(size=(B, A)) * 0.3
+    s = np.exp(log_std)
+    # KL(N(m1, s1) || N(m2, s2)) per dimension, the general formula at s1 = s2
+    kl = np.log(s / s) + (s**2 + (anchor - mean) ** 2) / (2 * s**2) - 0.5
+    np.testing.assert_allclose(ppo.anchor_penalty(mean, log_std, anchor), kl.sum(-1).mean(), rtol=1e-5)
+
+    params = {"W": jnp.asarray(rng.normal(size=(3, A)))}
+
+    def apply_fn(p, obs):
+        return obs @ p["W"], jnp.zeros((obs.shape[0], A)), obs[:, 0]
+
+    batch = {"obs": rng.normal(size=(B, 3)), "action": rng.normal(size=(B, A))}
+    batch.update({k: rng.normal(size=B) for k in ("log_prob", "value", "returns", "advantage")})
+    batch = {k: jnp.asarray(v) for k, v in batch.items()}
+    cfg = ppo.PPOConfig(anchor_scale=3.0)
+    plain, parts = ppo.ppo_loss(params, apply_fn, batch, cfg)
+    assert "loss/anchor" not in parts  # no anchor in the batch: PPO's loss alone
+    at = {**batch, "anchor_mean": jnp.asarray(anchor)}
+    loss, parts = ppo.ppo_loss(params, apply_fn, at, cfg)
+    want = 3.0 * 0.5 * np.mean(np.sum((np.asarray(batch["obs"] @ params["W"]) - anchor) ** 2, -1))
+    np.testing.assert_allclose(parts["loss/anchor"], want, rtol=1e-5)
+    np.testing.assert_allclose(loss - plain, want, rtol=1e-5)
+    with pytest.raises(ValueError, match="anchor_scale must be >= 0"):
+        ppo.PPOConfig(anchor_scale=-1.0)
 
 
 def test_running_stats_equal_the_statistics_of_everything_seen():
@@ -198,7 +228,7 @@ def test_sharding_over_two_devices_matches_one(name, overrides, layer):
     script = textwrap.dedent(
         f"""
         import jax, numpy as np
-        from train.presets import apply_overrides, preset
+        from train.presets import ConfigError, apply_overrides, preset
         from train.run import build
         assert len(jax.devices()) == 2, jax.devices()
         config = apply_overrides(preset({name!r}), {list(overrides)!r})
@@ -222,3 +252,51 @@ def test_sharding_over_two_devices_matches_one(name, overrides, layer):
     )
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-4000:]
     assert "max difference" in done.stdout
+
+
+def test_an_anchored_run_stays_near_its_start_and_resumes_bit_identical(tmp_path):
+    source = tmp_path / "source"
+    train(
+        apply_overrides(preset("guide"), [*TINY_GUIDE, "timesteps=8"]),
+        source,
+        preset_name="guide",
+        progress=False,
+    )
+    # a fixed, large learning rate so that the policy moves far in a few updates unless held
+    fast = [
+        *TINY_GUIDE,
+        f"init_from={source / 'policy'}",
+        "ppo.kl_threshold=0",
+        "ppo.learning_rate=1e-2",
+        "timesteps=24",
+    ]
+
+    def run(folder, scale, **kw):
+        config = apply_overrides(preset("guide"), [*fast, f"ppo.anchor_scale={scale}", "checkpoint_every=2"])
+        return train(config, folder, preset_name="guide", progress=False, **kw)
+
+    free, held = run(tmp_path / "free", 0), run(tmp_path / "held", 300)
+    trainer = build(apply_overrides(preset("guide"), fast)).trainer
+    start = held["state"].anchor
+    obs = trainer.env.reset(jax.random.split(jax.random.key(5), 64)).obs
+
+    def mean(state):
+        return trainer.network.apply(state["params"], state["obs_stats"].normalize(obs, 5.0))[0]
+
+    def moved(result):
+        s = result["state"]
+        return float(jnp.mean(jnp.abs(mean({"params": s.params, "obs_stats": s.obs_stats}) - mean(start))))
+
+    assert free["state"].anchor is None
+    assert moved(held) < 0.5 * moved(free), (moved(held), moved(free))
+    assert held["rows"][-1]["loss/anchor"] > 0
+    # the anchor lives in the checkpoint: a run cut after iteration 3 resumes to the same parameters
+    run(tmp_path / "cut", 300, stop_after=3)
+    resumed = run(tmp_path / "cut", 300, resume=True)
+    learned = lambda s: (s.params, s.obs_stats, s.anchor)  # noqa: E731
+    for a, b in zip(
+        jax.tree.leaves(learned(held["state"])), jax.tree.leaves(learned(resumed["state"])), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ConfigError, match="anchor_scale needs init_from"):
+        apply_overrides(preset("guide"), [*TINY_GUIDE, "ppo.anchor_scale=1"])

@@ -86,6 +86,10 @@ class PPOConfig:
     """Bounds of the adaptive learning rate."""
     obs_clip: float = 5.0
     """Standardised observations are clipped to +- this."""
+    anchor_scale: float = 0.0
+    """Weight of a penalty on the policy's mean leaving the start policy's (``init_from``) on the
+    rollout's observations: half the squared distance in units of the current std, i.e. the KL
+    from the start policy at the current std (:func:`anchor_penalty`); 0 disables."""
 
     def __post_init__(self):
         for name in ("rollouts", "epochs", "minibatches"):
@@ -99,6 +103,8 @@ class PPOConfig:
             raise ValueError(f"ppo.learning_rate must be positive, got {self.learning_rate}")
         if min(self.ratio_clip, self.value_clip, self.grad_norm_clip, self.kl_threshold, self.obs_clip) < 0:
             raise ValueError("ppo clip values, kl_threshold and obs_clip must be >= 0")
+        if not self.anchor_scale >= 0:
+            raise ValueError(f"ppo.anchor_scale must be >= 0, got {self.anchor_scale}")
         if not 0 < self.lr_range[0] <= self.lr_range[1]:
             raise ValueError(f"ppo.lr_range must be an ordered positive range, got {self.lr_range}")
 
@@ -172,11 +178,20 @@ def gae(rewards, values, dones, last_value, gamma: float, lam: float):
     return adv, adv + values
 
 
+def anchor_penalty(mean: jax.Array, log_std: jax.Array, anchor_mean: jax.Array) -> jax.Array:
+    """KL(N(anchor_mean, std) || N(mean, std)), summed over action dimensions and averaged over the
+    batch: the pull of :attr:`PPOConfig.anchor_scale` toward the start policy's actions. Only the
+    mean is held; the std stays PPO's to shape."""
+    z = (mean - anchor_mean) * jnp.exp(-log_std)
+    return jnp.mean(jnp.sum(0.5 * z**2, axis=-1))
+
+
 def ppo_loss(params, apply_fn, batch, config: PPOConfig):
     """skrl's PPO loss on one minibatch; returns ``(loss, parts)``.
 
     ``batch``: ``obs`` (standardised), ``action``, ``log_prob``, ``value`` and ``returns``
-    (both standardised), ``advantage`` (standardised).
+    (both standardised), ``advantage`` (standardised); with an anchor (``TrainState.anchor``),
+    ``anchor_mean``, the start policy's mean action, adds :func:`anchor_penalty`.
     """
     mean, log_std, value = apply_fn(params, batch["obs"])
     log_std = jnp.clip(log_std, *LOG_STD_RANGE)
@@ -193,6 +208,11 @@ def ppo_loss(params, apply_fn, batch, config: PPOConfig):
         value = batch["value"] + jnp.clip(value - batch["value"], -config.value_clip, config.value_clip)
     value_loss = config.value_loss_scale * jnp.mean((batch["returns"] - value) ** 2)
     loss = policy_loss + value_loss + entropy_loss
+    anchor = {}
+    if "anchor_mean" in batch:
+        anchor_loss = config.anchor_scale * anchor_penalty(mean, log_std, batch["anchor_mean"])
+        loss = loss + anchor_loss
+        anchor = {"loss/anchor": anchor_loss}
     parts = {
         "loss/policy": policy_loss,
         "loss/value": value_loss,
@@ -200,6 +220,7 @@ def ppo_loss(params, apply_fn, batch, config: PPOConfig):
         "policy/entropy": entropy,
         "policy/kl": kl,
         "policy/clip_fraction": jnp.mean(jnp.abs(ratio - 1.0) > config.ratio_clip),
+        **anchor,
     }
     return loss, parts
 
@@ -226,6 +247,9 @@ class TrainState:
     key: jax.Array
     iteration: jax.Array
     learning_rate: jax.Array
+    anchor: dict | None = None
+    """The start policy (``{"params", "obs_stats"}``, frozen) whose mean actions
+    :attr:`PPOConfig.anchor_scale` pulls toward; None: no anchor."""
 
 
 def all_finite(tree) -> jax.Array:
@@ -323,7 +347,13 @@ class Trainer:
             log_std = jnp.clip(log_std, *LOG_STD_RANGE)
             action = mean + jnp.exp(log_std) * jax.random.normal(k_act, mean.shape)
             nxt = self._shard_envs(self.env.step(env_state, action))
+            if s.anchor is not None:
+                anchor_obs = s.anchor["obs_stats"].normalize(obs, cfg.obs_clip)
+                extra = {"anchor_mean": self.network.apply(s.anchor["params"], anchor_obs)[0]}
+            else:
+                extra = {}
             out = {
+                **extra,
                 "obs": obs,
                 "action": action,
                 "log_prob": gaussian_log_prob(mean, log_std, action),
@@ -358,6 +388,8 @@ class Trainer:
             "returns": value_stats.normalize(flat(returns)),
             "advantage": flat(adv),
         }
+        if "anchor_mean" in traj:
+            data["anchor_mean"] = flat(traj["anchor_mean"])
         n = self.transitions_per_iteration
         grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
 
@@ -394,6 +426,7 @@ class Trainer:
             key=key,
             iteration=s.iteration + 1,
             learning_rate=lr,
+            anchor=s.anchor,
         )
         return state, self._metrics(traj, parts, lr, params)
 

@@ -115,6 +115,8 @@ class RunConfig:
         for name in ("num_envs", "timesteps", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.ppo.anchor_scale and not self.init_from:
+            raise ConfigError("ppo.anchor_scale needs init_from (the policy it anchors to)")
         if self.critic_warmup < 0 or (self.critic_warmup and not self.init_from):
             raise ConfigError(f"critic_warmup must be >= 0 and needs init_from, got {self.critic_warmup}")
         if not self.hidden or min(self.hidden) < 1:

@@ -152,6 +152,14 @@ def _from_policy(state, folder: Path, setup: Setup):
     return state.replace(params=place(params, state.params), obs_stats=place(stats, state.obs_stats))
 
 
+def _anchored(state):
+    """``state`` anchored (``ppo.anchor_scale``) to its own policy: a copy, since each compiled
+    chunk donates the state's buffers and one buffer cannot be donated twice."""
+    return state.replace(
+        anchor=jax.tree.map(jnp.copy, {"params": state.params, "obs_stats": state.obs_stats})
+    )
+
+
 def _shapes(tree) -> list:
     return [(jax.tree_util.keystr(k), v.shape) for k, v in jax.tree_util.tree_leaves_with_path(tree)]
 
@@ -316,6 +324,8 @@ def train(
     if config.init_from and not resume:
         state = _warm_start(state, Path(config.init_from), setup)
         log(f"started from the newest checkpoint of {config.init_from}")
+        if config.ppo.anchor_scale:
+            state = _anchored(state)
         if config.critic_warmup:
             began = time.perf_counter()
             fit = jax.jit(trainer.fit_critic, static_argnums=1, donate_argnums=0)
@@ -331,6 +341,8 @@ def train(
         (run_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
     ckpts = Checkpoints(run_dir / "checkpoints")
     if resume:
+        if config.ppo.anchor_scale:  # the checkpoint holds the anchor; this gives it its shape
+            state = _anchored(state)
         state, _ = ckpts.restore_intact(state, log)
         start = int(state.iteration)
         log(f"resumed {run_dir} at iteration {start}")
