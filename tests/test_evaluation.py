@@ -118,6 +118,38 @@ def test_navigator_reaches_goal_round_a_wall():
     assert speed.max() <= cfg.max_speed + 0.05
 
 
+def test_a_base_handed_over_fast_brakes_at_the_base_limit_not_past_its_goal():
+    """A policy hands the navigator a base at 2.6 m/s (the request fires mid-dash): it sheds the
+    excess at ``brake_accel`` and stops at a goal 2 m ahead; at the 1 m/s^2 cruise limit it would
+    need 3.4 m to stop. From rest it still speeds up at ``max_accel`` only."""
+    grid = nav.costmap(open_floor())
+    cfg = nav.NavigatorConfig()
+    goal = jnp.array([2.0, 0.4, 0.0])
+    field = nav.distance_field(grid, goal[:2])
+
+    def drive(v0, steps=400):
+        def body(carry, _):
+            pose, prev = carry
+            world, _ = nav.follow(grid, field, pose, prev, goal, cfg)
+            return (pose + world * CONTROL_DT, world), pose
+
+        start = (jnp.array([0.0, 0.0, 0.0]), jnp.array([v0, 0.0, 0.0]))
+        return np.asarray(jax.jit(lambda c: jax.lax.scan(body, c, None, length=steps)[1])(start))
+
+    poses = drive(2.6)
+    assert poses[:, 0].max() < float(goal[0]) + cfg.goal_tolerance  # never past the goal
+    assert np.linalg.norm(poses[-1, :2] - np.asarray(goal[:2])) < cfg.goal_tolerance
+    speed = np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1) / CONTROL_DT
+    assert speed[20] < 2.6 - 0.9 * cfg.brake_accel * 20 * CONTROL_DT  # braking at the base's rate
+    rest = np.linalg.norm(np.diff(drive(0.0, 30)[:, :2], axis=0), axis=1) / CONTROL_DT
+    assert rest[-1] <= cfg.max_accel * 30 * CONTROL_DT + 1e-3  # cruise acceleration unchanged
+    # the brake, too, stops a 2 m/s base within 0.7 s
+    prev, pose = jnp.array([2.0, 0.0, 0.0]), jnp.zeros(3)
+    for _ in range(35):
+        prev, _ = nav.stop(prev, pose, cfg)
+    assert float(jnp.linalg.norm(prev[:2])) == 0.0
+
+
 def test_guard_agrees_with_the_deployment_monitor():
     # the deployment's numpy collision monitor is the independent implementation of the same sweep
     from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig

@@ -55,6 +55,11 @@ class NavigatorConfig:
     """Speed toward open space when no path cell is within reach, m/s."""
     max_accel: float = 1.0
     """Linear acceleration limit, m/s^2."""
+    brake_accel: float = 3.0
+    """Deceleration limit, m/s^2 (the base's own; nav2's velocity smoother, too, brakes at a limit
+    of its own): a base handed over faster than the speed it should have (a policy's dash, an
+    escape) sheds the excess at this rate, not at ``max_accel``, which would carry it metres past a
+    near goal."""
     max_yaw_rate: float = 1.0
     """Yaw rate limit, rad/s."""
     max_yaw_accel: float = 2.0
@@ -253,7 +258,9 @@ def follow(
         cfg.max_yaw_rate,
     )
     dv = v_des - previous[:2]
-    dv = dv * jnp.minimum(1.0, accel * dt / jnp.maximum(jnp.linalg.norm(dv), 1e-9))
+    slower = jnp.linalg.norm(v_des) < jnp.linalg.norm(previous[:2])
+    limit = jnp.where(slower, jnp.maximum(accel, cfg.brake_accel), accel)
+    dv = dv * jnp.minimum(1.0, limit * dt / jnp.maximum(jnp.linalg.norm(dv), 1e-9))
     dw = jnp.clip(w_des - previous[2], -cfg.max_yaw_accel * dt, cfg.max_yaw_accel * dt)
     world = jnp.concatenate([previous[:2] + dv, (previous[2] + dw)[None]])
     local = jnp.concatenate([rotate(-pose[2], world[:2]), world[2:]])
@@ -261,11 +268,11 @@ def follow(
 
 
 def stop(previous: jax.Array, pose: jax.Array, cfg: NavigatorConfig) -> tuple[jax.Array, jax.Array]:
-    """Brake at the acceleration limits (world-frame and robot-frame commands)."""
+    """Brake at the deceleration limits (world-frame and robot-frame commands)."""
     dt = CONTROL_DT
     v = previous[:2]
     n = jnp.linalg.norm(v)
-    v = v * jnp.maximum(n - cfg.max_accel * dt, 0.0) / jnp.maximum(n, 1e-9)
+    v = v * jnp.maximum(n - cfg.brake_accel * dt, 0.0) / jnp.maximum(n, 1e-9)
     w = jnp.sign(previous[2]) * jnp.maximum(jnp.abs(previous[2]) - cfg.max_yaw_accel * dt, 0.0)
     world = jnp.concatenate([v, w[None]])
     return world, jnp.concatenate([rotate(-pose[2], v), w[None]])
