@@ -27,11 +27,16 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
 ``nav_cpu`` NavRL for a 2-core CPU: ``su_cpu``'s floors, rays, body and departures with two
            users (Table 4.3's weights, ``su_cpu``'s scaling), the goal from the shipped GuideRL
            policy (``assets/pretrained/guide``), started from the shipped SU policy
-           (``assets/pretrained/su``; the second user's inputs start at zero weight), and users
-           visible to the LiDAR as leg-height cylinders (the thesis's simulated LiDAR did not see
-           them; a real one does): with them, 2.5x fewer user collisions in the first 130
-           iterations than without. The shipped NavRL policy is this preset; commands and
-           figures: ``docs/results.md``.
+           (``assets/pretrained/su``; the second user's inputs start at zero weight; its critic,
+           which an exported policy lacks, fitted alone for 20 iterations first), users visible
+           to the LiDAR as leg-height cylinders (the thesis's simulated LiDAR did not see them; a
+           real one does: 2.5x fewer user collisions in the first 130 iterations), the users
+           listed nearest the goal first (``env.users_by_goal``: the goal's user where the SU
+           policy saw its only one), the critical-zone penalty at -5 instead of -20 per user and
+           step (at -20 PPO trades the start's approach for distance from walking users), a
+           learning rate of 5e-5 (the start is a trained policy), 79,360 timesteps (20.3M
+           transitions, ~40 min). The shipped NavRL policy is this preset; commands, figures and
+           what did not work: ``docs/results.md``.
 ``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
 ``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
 ``guide_cpu`` GuideRL for a 2-core CPU: ``guide`` with 1,024 environments for 48,000 timesteps
@@ -191,11 +196,21 @@ _NAV_CPU = dataclasses.replace(
         # started from the SU policy, the second user's inputs carry no weight: a LiDAR that sees
         # the users' legs shows where they are through the encoder the SU policy already has
         users_visible=True,
-        weights=dataclasses.replace(_SU_CPU.env.weights, acceleration=envs.rewards.NAV_WEIGHTS.acceleration),
+        # the goal's user in the slot where the SU policy saw its only one
+        users_by_goal=True,
+        weights=dataclasses.replace(
+            _SU_CPU.env.weights,
+            acceleration=envs.rewards.NAV_WEIGHTS.acceleration,
+            # at Table 4.3's -20 per user and step, PPO learns to hang back from walking users
+            # (whose HIP is 0.23 m outside d_crit) rather than reach the goal
+            critical_zone=-5.0,
+        ),
     ),
-    timesteps=160_000,
+    timesteps=79_360,
+    ppo=dataclasses.replace(_SU_CPU.ppo, learning_rate=5e-5),
     guide_run=str(PRETRAINED / "guide"),
     init_from=str(PRETRAINED / "su"),
+    critic_warmup=20,
 )
 
 _GUIDE = RunConfig(
