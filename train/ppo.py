@@ -347,13 +347,7 @@ class Trainer:
             log_std = jnp.clip(log_std, *LOG_STD_RANGE)
             action = mean + jnp.exp(log_std) * jax.random.normal(k_act, mean.shape)
             nxt = self._shard_envs(self.env.step(env_state, action))
-            if s.anchor is not None:
-                anchor_obs = s.anchor["obs_stats"].normalize(obs, cfg.obs_clip)
-                extra = {"anchor_mean": self.network.apply(s.anchor["params"], anchor_obs)[0]}
-            else:
-                extra = {}
             out = {
-                **extra,
                 "obs": obs,
                 "action": action,
                 "log_prob": gaussian_log_prob(mean, log_std, action),
@@ -388,8 +382,9 @@ class Trainer:
             "returns": value_stats.normalize(flat(returns)),
             "advantage": flat(adv),
         }
-        if "anchor_mean" in traj:
-            data["anchor_mean"] = flat(traj["anchor_mean"])
+        if s.anchor is not None:  # the start policy's mean on the same observations, in one batch
+            anchor_obs = s.anchor["obs_stats"].normalize(flat(traj["obs"]), cfg.obs_clip)
+            data["anchor_mean"] = self.network.apply(s.anchor["params"], anchor_obs)[0]
         n = self.transitions_per_iteration
         grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
 
