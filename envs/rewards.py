@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from methd_jax.distances import COLLISION_DISTANCE, CRITICAL_DISTANCE
+from methd_jax.geometry import rotate, to_local
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,14 +41,22 @@ class SafetyConfig:
     """p_o fires when a ray is shorter than b_r plus this, m (the thesis: 0). With a few rays a
     corner touches an obstacle a few cm before any ray crosses the boundary; a margin makes the
     sparse test at least as strict as the evaluation's 720-ray one."""
+    stopping_margin: float = 0.05
+    """p_s (beyond the thesis): the clearance the footprint keeps from every scan point along the
+    path on which the base would stop if it braked now, m."""
+    deceleration: float = 3.0
+    """How hard the base brakes along each of its own axes for p_s, m/s^2 (its servo limit)."""
+    yaw_deceleration: float = 6.0
+    """How hard the base stops turning for p_s, rad/s^2 (its servo limit)."""
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"safety.{f.name} must be a finite number >= 0, got {value!r}")
-        if not self.yaw_radius > 0:
-            raise ValueError(f"safety.yaw_radius must be positive, got {self.yaw_radius!r}")
+        for name in ("yaw_radius", "deceleration", "yaw_deceleration"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"safety.{name} must be positive, got {getattr(self, name)!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +73,8 @@ class RewardWeights:
     action_smoothness: float = -0.25
     velocity: float = -2.0
     acceleration: float = -0.0015
+    stopping: float = 0.0
+    """p_s, beyond the thesis (0): per metre by which the base could not brake clear of the scan."""
 
 
 SU_WEIGHTS = RewardWeights()
@@ -116,6 +127,68 @@ def inflation_penalty(inflation: jax.Array, safety: SafetyConfig) -> jax.Array:
     return jnp.sum(jnp.maximum((d - inflation) / d, 0.0))
 
 
+STOP_SAMPLES = 4
+"""Poses sampled along the stopping path of :func:`stopping_path`."""
+
+
+def stopping_path(velocity: jax.Array, deceleration: float, yaw_deceleration: float) -> jax.Array:
+    """Poses (x, y, yaw) ``(STOP_SAMPLES, 3)``, in the base's present frame, through which a base
+    moving at the robot-frame ``velocity`` (vx, vy, wz) passes when it brakes at once; the last is
+    where it comes to rest. As the base's servos do (:func:`methd_jax.robot.predict`), each brakes
+    along its own robot axis, at most ``deceleration`` per axis and ``yaw_deceleration``, while
+    the base's momentum keeps its direction in the world as the base turns under it. Integrated
+    over equal slices of the longest the stop can take (``|v| / deceleration`` or ``|wz| /
+    yaw_deceleration``), each slice braking no further than to rest."""
+    w = velocity[2]
+    stop = jnp.maximum(jnp.linalg.norm(velocity[:2]) / deceleration, jnp.abs(w) / yaw_deceleration)
+    dt = stop / STOP_SAMPLES
+    safe_dt = jnp.maximum(dt, 1e-9)
+
+    def yaw_at(t):
+        t = jnp.minimum(t, jnp.abs(w) / yaw_deceleration)
+        return w * t - jnp.sign(w) * 0.5 * yaw_deceleration * t**2
+
+    def slice_(carry, k):
+        xy, v = carry  # v: the linear velocity in the start frame
+        th = yaw_at((k + 0.5) * dt)
+        axis = rotate(-th, v)
+        braked = jnp.sign(axis) * jnp.maximum(jnp.abs(axis) - deceleration * safe_dt, 0.0)
+        v_next = rotate(th, braked)
+        xy = xy + 0.5 * dt * (v + v_next)
+        return (xy, v_next), jnp.concatenate([xy, yaw_at((k + 1.0) * dt)[None]])
+
+    k = jnp.arange(STOP_SAMPLES, dtype=jnp.float32)
+    _, poses = jax.lax.scan(slice_, (jnp.zeros(2), velocity[:2].astype(jnp.float32)), k)
+    return poses
+
+
+def box_distance(points: jax.Array, half: jax.Array) -> jax.Array:
+    """Signed distance of ``points`` (..., 2) from the box |x| <= half[0], |y| <= half[1] (< 0 inside)."""
+    q = jnp.abs(points) - half
+    return jnp.linalg.norm(jnp.maximum(q, 0.0), axis=-1) + jnp.minimum(jnp.max(q, axis=-1), 0.0)
+
+
+def stopping_overlap(
+    ranges: jax.Array, directions: jax.Array, velocity: jax.Array, half: jax.Array, safety: SafetyConfig
+) -> jax.Array:
+    """p_s: how far (m) the footprint (half extents ``half``) comes within ``safety.stopping_margin``
+    of a scan point anywhere on its :func:`stopping_path` from ``velocity``, 0 if it stays clear.
+
+    ``ranges`` (R,) along ``directions`` (R, 2) are the true scan (``inf`` where nothing is hit).
+    Unlike p_i, which sees only where the base is, this grows with the speed toward an obstacle:
+    at 3 m/s the base needs 1.5 m to stop, so driving at a table 1 m away costs before the contact
+    does. At rest it is the present clearance's shortfall. A point's depth inside the footprint is
+    its distance to the nearest face, so the term saturates at half the base's width plus the
+    margin."""
+    points = jnp.where(jnp.isfinite(ranges), ranges, 1e3)[:, None] * directions
+    poses = jnp.concatenate(
+        [jnp.zeros((1, 3)), stopping_path(velocity, safety.deceleration, safety.yaw_deceleration)]
+    )
+    local = jax.vmap(to_local, (0, None))(poses, points)  # (P, R, 2)
+    clearance = jnp.min(box_distance(local, half))
+    return jnp.maximum(safety.stopping_margin - clearance, 0.0)
+
+
 def action_smoothness(a: jax.Array, a1: jax.Array, a2: jax.Array) -> jax.Array:
     """p_a (4.14): ||a_t - a_{t-1}||^2 + ||a_t - 2 a_{t-1} + a_{t-2}||^2."""
     return jnp.sum((a - a1) ** 2) + jnp.sum((a - 2 * a1 + a2) ** 2)
@@ -147,12 +220,14 @@ def terms(
     acceleration: jax.Array,
     safety: SafetyConfig,
     d_path: jax.Array | None = None,
+    stopping: jax.Array | None = None,
 ) -> dict[str, jax.Array]:
     """All unweighted terms of eq. 4.17 for one step.
 
     ``ranges`` are the true, unclamped ranges; ``boundary`` (b_r) and ``inflation_scale`` are the
     per-ray constants of :meth:`methd_jax.geometry.Footprint.ray_geometry`. ``d_path``, where
     given, replaces the straight ``d_goal`` in r_d only (the way to the goal round obstacles).
+    ``stopping`` is p_s (:func:`stopping_overlap`), 0 where not given.
     """
     inflation = (ranges - boundary) * inflation_scale  # f(l) of eq. 4.13
     bad = unsafe(user_distances, inflation, safety)
@@ -167,6 +242,7 @@ def terms(
         "action_smoothness": action_smoothness(action, prev_action, prev_prev_action),
         "velocity": velocity_penalty(velocity),
         "acceleration": acceleration_penalty(acceleration),
+        "stopping": jnp.float32(0.0) if stopping is None else stopping,
     }
 
 

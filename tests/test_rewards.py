@@ -10,6 +10,7 @@ import pytest
 from envs import rewards
 from envs.rewards import NAV_WEIGHTS, SU_WEIGHTS, SafetyConfig
 from methd_jax import lidar
+from methd_jax import robot as robot_lib
 from methd_jax.floors import Floor
 from methd_jax.geometry import KAIROS, ray_angles
 
@@ -164,3 +165,66 @@ def test_the_way_round_replaces_the_straight_distance_in_r_d_only():
     for name in straight:
         if name != "distance":
             assert float(around[name]) == float(straight[name]), name
+
+
+@pytest.mark.parametrize(
+    "v", [(2.0, 0.0, 0.0), (1.0, -1.5, 0.0), (2.0, 0.5, 2.0), (0.0, 0.0, 2.0), (3.0, 0.0, -1.0)]
+)
+def test_the_stopping_path_ends_where_the_base_servos_stop_it(v):
+    servo = robot_lib.Robot().servo()
+    path = np.asarray(rewards.stopping_path(jnp.asarray(v), SAFE.deceleration, SAFE.yaw_deceleration))
+    rest = np.asarray(robot_lib.predict(servo, jnp.asarray(v), jnp.zeros((60, 3))))[-1]
+    assert path.shape == (rewards.STOP_SAMPLES, 3)
+    np.testing.assert_allclose(path[-1, :2], rest[:2], atol=0.05)
+    assert abs(path[-1, 2] - rest[2]) < 0.03
+    # monotone along the way: every sample is farther along than the one before
+    travelled = np.linalg.norm(path[:, :2], axis=1)
+    assert np.all(np.diff(travelled) >= -1e-6)
+
+
+def test_a_base_at_rest_stops_where_it_is():
+    assert np.all(np.asarray(rewards.stopping_path(jnp.zeros(3), 3.0, 6.0)) == 0.0)
+
+
+def _stopping(ranges, v):
+    half = jnp.asarray([HALF_L, HALF_W], jnp.float32)
+    directions = jnp.stack([jnp.cos(ANGLES), jnp.sin(ANGLES)], -1)
+    return float(
+        rewards.stopping_overlap(jnp.asarray(ranges), directions, jnp.asarray(v, jnp.float32), half, SAFE)
+    )
+
+
+def _brute_overlap(ranges, v):
+    """The same shortfall from the base's own servo model, sampled every 10 ms, in numpy."""
+    servo = robot_lib.Robot().servo()
+    poses = np.concatenate(
+        [np.zeros((1, 3)), np.asarray(robot_lib.predict(servo, jnp.asarray(v), jnp.zeros((60, 3))))]
+    )
+    a = np.asarray(ANGLES, np.float64)
+    ok = np.isfinite(ranges)
+    pts = np.stack([ranges[ok] * np.cos(a[ok]), ranges[ok] * np.sin(a[ok])], -1)
+    best = np.inf
+    for x, y, th in poses:
+        c, s = np.cos(th), np.sin(th)
+        d = pts - (x, y)
+        local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
+        q = np.abs(local) - (HALF_L, HALF_W)
+        sd = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
+        best = min(best, sd.min())
+    return max(SAFE.stopping_margin - best, 0.0)
+
+
+def test_p_s_is_the_braking_shortfall_toward_a_wall():
+    wall = _wall_ranges("front", 1.0)  # a wall 1 m ahead of the front face
+    assert _stopping(wall, (0, 0, 0)) == 0.0
+    assert _stopping(wall, (1.0, 0, 0)) == 0.0  # stops in 0.17 m
+    assert _stopping(wall, (-3.0, 0, 0)) == 0.0  # driving away
+    # needs 1.5 m: it would stop 0.5 m into the wall, whose points then lie 0.455 m inside the
+    # nearest face (a side): that depth plus the 5 cm margin
+    assert _stopping(wall, (3.0, 0, 0)) == pytest.approx(0.455 + 0.05, abs=0.01)
+    assert _stopping(wall, (2.5, 0, 0)) == pytest.approx(2.5**2 / 6 - 1.0 + 0.05, abs=0.01)
+    for v in [(3.0, 0, 0), (2.5, 1.0, 1.5), (2.0, -0.5, -2.0), (0.5, 0.0, 2.0)]:
+        assert _stopping(wall, v) == pytest.approx(_brute_overlap(wall, v), abs=0.04), v
+    near = _wall_ranges("side", 0.02)  # 2 cm from the left side, at rest: the margin's shortfall
+    assert _stopping(near, (0, 0, 0)) == pytest.approx(0.03, abs=2e-3)
+    assert _stopping(near, (0.0, 0.0, 2.0)) > _stopping(near, (0, 0, 0))  # turning swings a corner in
