@@ -4,6 +4,7 @@ import json
 import re
 import subprocess
 import sys
+import sysconfig
 from pathlib import Path
 
 import jax
@@ -205,6 +206,17 @@ def test_a_wheel_runs_from_any_folder_with_its_assets(tmp_path):
     env = tmp_path / "env"
     venv.create(env, system_site_packages=True)  # no pip of its own: this pip installs into it
     python = str(env / "bin" / "python")
+    # the dependencies this test runs with, wherever they are installed (a virtual environment's are
+    # not the base interpreter's system site): appended after the new environment's own
+    # site-packages, so the wheel's methd_jax comes first and no editable install's hook is read
+    inner = subprocess.run(
+        [python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    outer = dict.fromkeys(sysconfig.get_paths()[k] for k in ("purelib", "platlib"))
+    (Path(inner) / "borrowed_dependencies.pth").write_text("".join(f"{p}\n" for p in outer))
     done = subprocess.run(
         [sys.executable, "-m", "pip", "--python", python, "install", "-q", "--no-deps", str(wheel)],
         capture_output=True,
