@@ -41,7 +41,6 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from brax.envs.base import Env, State
 from flax import struct
 from mujoco import mjx
@@ -53,7 +52,7 @@ from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT, CONTROL_HZ
 from methd_jax.distances import USER_RADIUS
 from methd_jax.floors import Floor, FloorConfig
-from methd_jax.geometry import KAIROS, path_around_discs, ray_angles, rotate, to_local, wrap_angle
+from methd_jax.geometry import KAIROS, path_around_discs, rotate, to_local, wrap_angle
 from methd_jax.motion.features import HipConfig, MotionBank
 
 ENV_FLOORS = FloorConfig(room_size=(13.0, 16.0))
@@ -290,9 +289,6 @@ class NavEnv(Env):
         mixed = config.lab_fraction > 0 and not config.lab
         self._lab_mixed = floors.lab().pad(*config.floor.capacity) if mixed else None
         self._boundary, self._inflation_scale = KAIROS.ray_geometry(config.num_rays)
-        angles = ray_angles(config.num_rays)
-        self._directions = np.stack([np.cos(angles), np.sin(angles)], -1).astype(np.float32)
-        self._half = np.array([0.5 * KAIROS.length, 0.5 * KAIROS.width], np.float32)
         self._scale = jnp.array([config.robot.max_speed, config.robot.max_speed, config.robot.max_yaw_rate])
         self._cooldown_steps = round(config.cooldown * CONTROL_HZ)
         self._limit_steps = round(config.time_limit * CONTROL_HZ)
@@ -569,7 +565,7 @@ class NavEnv(Env):
             d_goal=d_g,
             d_path=self._path_length(w.floor, pose, w.goal, user_xy) if cfg.distance_around else None,
             stopping=(
-                rewards.stopping_overlap(ranges, self._directions, velocity, self._half, cfg.safety)
+                rewards.stopping_overlap(ranges, velocity, KAIROS.half_extents, cfg.safety)
                 if cfg.weights.stopping
                 else None
             ),

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from methd_jax.distances import COLLISION_DISTANCE, CRITICAL_DISTANCE
-from methd_jax.geometry import rotate, to_local
+from methd_jax.geometry import rotate, scan_points, to_local
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,18 +169,19 @@ def box_distance(points: jax.Array, half: jax.Array) -> jax.Array:
 
 
 def stopping_overlap(
-    ranges: jax.Array, directions: jax.Array, velocity: jax.Array, half: jax.Array, safety: SafetyConfig
+    ranges: jax.Array, velocity: jax.Array, half: jax.Array, safety: SafetyConfig
 ) -> jax.Array:
     """p_s: how far (m) the footprint (half extents ``half``) comes within ``safety.stopping_margin``
     of a scan point anywhere on its :func:`stopping_path` from ``velocity``, 0 if it stays clear.
 
-    ``ranges`` (R,) along ``directions`` (R, 2) are the true scan (``inf`` where nothing is hit).
+    ``ranges`` (R,) are the true full-circle scan (rays as :func:`methd_jax.geometry.ray_angles`,
+    ``inf`` where nothing is hit).
     Unlike p_i, which sees only where the base is, this grows with the speed toward an obstacle:
     at 3 m/s the base needs 1.5 m to stop, so driving at a table 1 m away costs before the contact
     does. At rest it is the present clearance's shortfall. A point's depth inside the footprint is
     its distance to the nearest face, so the term saturates at half the base's width plus the
     margin."""
-    points = jnp.where(jnp.isfinite(ranges), ranges, 1e3)[:, None] * directions
+    points = scan_points(ranges)
     poses = jnp.concatenate(
         [jnp.zeros((1, 3)), stopping_path(velocity, safety.deceleration, safety.yaw_deceleration)]
     )

@@ -70,6 +70,19 @@ def ray_angles(num_rays: int = 720) -> np.ndarray:
     return TWO_PI * np.arange(num_rays) / num_rays
 
 
+def ray_directions(num_rays: int = 720) -> np.ndarray:
+    """Unit vectors ``(num_rays, 2)`` of the rays of :func:`ray_angles` (numpy, float32)."""
+    a = ray_angles(num_rays)
+    return np.stack([np.cos(a), np.sin(a)], -1).astype(np.float32)
+
+
+def scan_points(ranges: jax.Array) -> jax.Array:
+    """A full-circle scan's ``ranges`` (R,) as points ``(R, 2)`` in the sensor frame; a ray without
+    a return (``inf``) gives a point 1 km away."""
+    far = jnp.where(jnp.isfinite(ranges), ranges, 1e3)
+    return far[:, None] * ray_directions(ranges.shape[0])
+
+
 @dataclasses.dataclass(frozen=True)
 class Footprint:
     """A rectangular robot footprint centred on the LiDAR origin."""
@@ -88,6 +101,11 @@ class Footprint:
             raise ValueError(
                 f"footprint radius {self.radius} does not enclose a {self.length} x {self.width} rectangle"
             )
+
+    @property
+    def half_extents(self) -> np.ndarray:
+        """(length / 2, width / 2), float32: the rectangle is |x| <= [0], |y| <= [1] in the robot frame."""
+        return np.array([0.5 * self.length, 0.5 * self.width], np.float32)
 
     def boundary_distance(self, angles: jax.Array) -> jax.Array:
         """b_r: distance from the centre to the rectangle's edge along each ray angle."""

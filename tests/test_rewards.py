@@ -188,10 +188,7 @@ def test_a_base_at_rest_stops_where_it_is():
 
 def _stopping(ranges, v):
     half = jnp.asarray([HALF_L, HALF_W], jnp.float32)
-    directions = jnp.stack([jnp.cos(ANGLES), jnp.sin(ANGLES)], -1)
-    return float(
-        rewards.stopping_overlap(jnp.asarray(ranges), directions, jnp.asarray(v, jnp.float32), half, SAFE)
-    )
+    return float(rewards.stopping_overlap(jnp.asarray(ranges), jnp.asarray(v, jnp.float32), half, SAFE))
 
 
 def _brute_overlap(ranges, v):

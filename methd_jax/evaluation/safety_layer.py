@@ -18,7 +18,7 @@ import numpy as np
 from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT
 from methd_jax.deploy.safety import SafetyConfig, candidates, change, reach, segment_meets_box
-from methd_jax.geometry import KAIROS, ray_angles, to_local
+from methd_jax.geometry import KAIROS, scan_points, to_local
 from methd_jax.robot import Servo
 
 
@@ -47,11 +47,9 @@ def sorted_points(ranges: jax.Array) -> tuple[jax.Array, jax.Array]:
     """A full-circle scan's ranges (rays as :func:`methd_jax.geometry.ray_angles`) as points in the
     robot frame, nearest first and padded to whole chunks: (ranges (R',), points (R', 2)); no return
     (and the padding) counts as 1 km away."""
-    a = ray_angles(ranges.shape[0])  # numpy: constants in the compiled step
-    directions = np.stack([np.cos(a), np.sin(a)], -1).astype(np.float32)
     far = jnp.where(jnp.isfinite(ranges), ranges, 1e3)
     order = jnp.argsort(far)
-    far, pts = far[order], (far[:, None] * directions)[order]
+    far, pts = far[order], scan_points(ranges)[order]
     pad = -ranges.shape[0] % CHUNK
     return jnp.pad(far, (0, pad), constant_values=1e3), jnp.pad(pts, ((0, pad), (0, 0)), constant_values=1e3)
 
@@ -90,7 +88,7 @@ def path_hits(poses, ranges, points, margin: float, extent) -> jax.Array:
     and the next. Points within the footprint at the origin are ignored and points within the
     margin are tested against the footprint itself (see :func:`obstacle_scale`); only points
     nearer than ``extent`` (the farthest any part of the footprint gets) are tested."""
-    body = jnp.array([0.5 * KAIROS.length, 0.5 * KAIROS.width])
+    body = jnp.asarray(KAIROS.half_extents)
     half = body + margin
     needed = jnp.sum(ranges <= extent + 0.01)  # 1 cm for rounding
     chunks = (needed + CHUNK - 1) // CHUNK
