@@ -91,6 +91,26 @@ def test_distance_field_is_geodesic():
     assert float(kfield[c[0], c[1]]) >= nav.UNREACHABLE
 
 
+def test_distance_field_does_not_cut_between_diagonal_lethal_cells():
+    # a wall of lethal cells along the anti-diagonal of a 7 x 7 map: 8-connected steps could slip
+    # between any two of its cells, a base cannot
+    n = 7
+    cost = np.ones((n, n))
+    for i in range(n):
+        cost[i, n - 1 - i] = np.inf
+    grid = nav.Costmap(jnp.asarray(cost), jnp.ones((n, n)), jnp.zeros(2), 1.0)
+    field = np.asarray(nav.distance_field(grid, jnp.array([0.0, 0.0])))
+    below = np.add.outer(np.arange(n), np.arange(n)) < n - 1
+    assert np.all(field[below] < nav.UNREACHABLE)
+    assert np.all(field[~below] >= nav.UNREACHABLE)
+    # with one cell of the wall open the far side is reached through it, orthogonally
+    cost[3, 3] = 1.0
+    grid = grid.replace(cost=jnp.asarray(cost))
+    field = np.asarray(nav.distance_field(grid, jnp.array([0.0, 0.0])))
+    assert field[6, 6] == pytest.approx(3 * math.sqrt(2) + 3 * math.sqrt(2), abs=1e-4)
+    assert field[4, 3] == pytest.approx(3 * math.sqrt(2) + 1.0, abs=1e-4)
+
+
 def test_navigator_reaches_goal_round_a_wall():
     wall = open_floor(polygons=[[(1.4, -3.0), (1.6, -3.0), (1.6, 3.0), (1.4, 3.0)]])
     grid = nav.costmap(wall)

@@ -183,11 +183,20 @@ def distance_field(grid: Costmap, goal_xy: jax.Array, keepout: jax.Array | None 
         d = jnp.linalg.norm(c[:, :, None, :] - keepout[:, :2], axis=-1)  # (H, W, K)
         cost = jnp.where(jnp.any(d < keepout[:, 2], axis=-1), jnp.inf, cost)
 
+    # a diagonal step needs both cells it squeezes between free: cutting between two lethal cells
+    # made threads no wider than a corner that the follower's lookahead cannot see, and a base
+    # led to one paced in front of it until the request timed out
+    free = jnp.pad(jnp.isfinite(cost), 1, constant_values=False)
+    open_step = [
+        free[1 + dy : 1 + dy + h, 1 : 1 + w] & free[1 : 1 + h, 1 + dx : 1 + dx + w] for dy, dx in _NEIGHBOURS
+    ]
+
     def relax(d):
         p = jnp.pad(d, 1, constant_values=UNREACHABLE)
         best = d
-        for (dy, dx), c in zip(_NEIGHBOURS, step_cost, strict=True):
+        for (dy, dx), c, ok in zip(_NEIGHBOURS, step_cost, open_step, strict=True):
             nb = p[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+            nb = jnp.where(ok, nb, UNREACHABLE)
             best = jnp.minimum(best, nb + c * cost)  # entering this cell costs its own weight
         best = jnp.where(jnp.isfinite(cost), jnp.minimum(best, UNREACHABLE), UNREACHABLE)
         return best.at[goal[0], goal[1]].set(0.0)
