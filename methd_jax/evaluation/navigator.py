@@ -3,11 +3,12 @@
 Global planning is a wavefront on the floor's costmap: :func:`costmap` rasterises the floor like
 nav2's inflation layer (cells closer to an obstacle than the footprint's circumscribed radius are
 lethal, cells a little farther cost more the closer they are), and :func:`distance_field` relaxes
-geodesic distances to the goal over 8-connected cells in a ``lax.while_loop``. Following is a local
-rule on that field: of ``directions`` points at the lookahead distance the lowest-cost one gives the
-heading (with none reachable, the most open one), the speed falls as ``sqrt(2 a d)`` toward the
-goal, the yaw turns toward the goal's yaw, and velocity and yaw rate change at most by the
-acceleration limits per step. All pure and deterministic; the field is planned only when the caller
+geodesic distances to the goal over 8-connected cells in a ``lax.while_loop`` (a diagonal step
+only where both cells it passes between are free). Following is a local rule on that field: of
+``directions`` points at the lookahead distance the lowest-cost one gives the heading (with none
+reachable, the most open one), the speed falls as ``sqrt(2 a d)`` toward the goal, the yaw turns
+toward the goal's yaw, and velocity and yaw rate change at most by the acceleration limits per
+step. All pure and deterministic; the field is planned only when the caller
 asks (``lax.cond``), so a 50 Hz loop does not pay for a plan every step.
 
 :func:`guard` is the local planner's footprint check (nav2's collision monitor, "approach"
