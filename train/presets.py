@@ -40,8 +40,10 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            policy saw its only one), the critical-zone penalty at -5 instead of -20 per user and
            step (at -20 PPO trades the start's approach for distance from walking users), a
            learning rate of 5e-5 (the start is a trained policy), 79,360 timesteps (20.3M
-           transitions, ~40 min). The shipped NavRL policy is this preset; commands, figures and
-           what did not work: ``docs/results.md``.
+           transitions, ~40 min). The shipped NavRL policy is this preset and a second stage
+           from it with p_s (``env.weights.stopping=-100``, a 10 cm collision margin, the lab
+           twin in half the episodes, 35 min; 75 min in all); commands, figures and what did not
+           work: ``docs/results.md`` and the card.
 ``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
 ``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
 ``guide_cpu`` GuideRL for a 2-core CPU: ``guide`` with 1,024 environments for 48,000 timesteps
@@ -250,7 +252,8 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
     ),
     "nav_cpu": (
         "NavRL for the 2-core CPU: su_cpu's floors and departures with two users, the goal from the "
-        "shipped GuideRL policy, started from the shipped SU policy (docs/results.md)",
+        "shipped GuideRL policy, started from the shipped SU policy; the shipped policy's recipe (two "
+        "stages, the second with env.weights.stopping: docs/results.md)",
         _NAV_CPU,
     ),
     "su": ("single-user policy, Table 4.4 (2,048 envs, 960k timesteps)", RunConfig()),
