@@ -8,8 +8,8 @@ only where both cells it passes between are free). Following is a local rule on 
 ``directions`` points at the lookahead distance the lowest-cost one gives the heading (with none
 reachable, the most open one), the speed falls as ``sqrt(2 a d)`` toward the goal, the yaw turns
 toward the goal's yaw, and velocity and yaw rate change at most by the acceleration limits per
-step. All pure and deterministic; the field is planned only when the caller
-asks (``lax.cond``), so a 50 Hz loop does not pay for a plan every step.
+step. All pure and deterministic; the field is planned only when the caller asks (``lax.cond``), so
+a 50 Hz loop does not pay for a plan every step.
 
 :func:`guard` is the local planner's footprint check (nav2's collision monitor, "approach"
 behaviour): the command is held over a horizon, the footprint swept along the arc against the
@@ -185,8 +185,8 @@ def distance_field(grid: Costmap, goal_xy: jax.Array, keepout: jax.Array | None 
         cost = jnp.where(jnp.any(d < keepout[:, 2], axis=-1), jnp.inf, cost)
 
     # a diagonal step needs both cells it squeezes between free: cutting between two lethal cells
-    # made threads no wider than a corner that the follower's lookahead cannot see, and a base
-    # led to one paced in front of it until the request timed out
+    # opens threads no wider than a corner, which the follower's bilinear lookahead cannot see, so
+    # a base led to one paces in front of it
     free = jnp.pad(jnp.isfinite(cost), 1, constant_values=False)
     open_step = [
         free[1 + dy : 1 + dy + h, 1 : 1 + w] & free[1 : 1 + h, 1 + dx : 1 + dx + w] for dy, dx in _NEIGHBOURS
