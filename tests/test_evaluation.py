@@ -15,6 +15,7 @@ from methd_jax.evaluation import engine as E
 from methd_jax.evaluation import methods as M
 from methd_jax.evaluation import metrics, stats
 from methd_jax.evaluation import navigator as nav
+from methd_jax.geometry import rotate
 from methd_jax.motion.features import MotionBank
 from methd_jax.motion.trajectory import Trajectory, quat_from_yaw_pitch
 
@@ -327,6 +328,36 @@ def test_user_walking_at_the_robot_triggers_escape():
     assert gap < 1.5 + 0.05  # it fired at the threshold, not before
     # the robot moved away from the user: behind it along user -> robot (+x)
     assert rec["pose"][first + 100, 0] > rec["pose"][first, 0] + 0.5
+    assert res["collisions_user"][0] == 0
+
+
+class Lunge:
+    """A method that holds the base still until a user is 1.56 m away, then commands 1.5 m/s at
+    them: Escape (at 1.5 m) takes over a base that has barely started but was told to go fast."""
+
+    name = "Lunge"
+    multi_user = True
+
+    def init(self):
+        return ()
+
+    def chase(self, state, ctx):
+        gap = jnp.linalg.norm(ctx.users["pose"][0, :2] - ctx.pose[:2])
+        toward = (ctx.users["pose"][0, :2] - ctx.pose[:2]) / gap
+        v = jnp.where(gap < 1.56, 1.5, 0.0) * rotate(-ctx.pose[2], toward)
+        return state, M.Chase(jnp.concatenate([v, jnp.zeros(1)]), jnp.zeros(3), jnp.bool_(False))
+
+
+def test_escape_takes_over_from_how_the_base_moves_not_from_the_last_command():
+    """When Escape takes the base from a method that drove it, the navigator ramps from the base's
+    velocity: a last command of 1.5 m/s toward the walking user must not carry the base at them."""
+    traj = walk([(-5.0, 0.0), (1.0, 0.0)], [1.0])
+    res, rec = run(Lunge(), [traj], open_floor(), (0.0, 0.0, 0.0), steps=600)
+    first = int(np.argmax(rec["mode"] == E.ESCAPE))
+    assert first > 0 and res["escapes"][0] >= 1
+    x = rec["pose"][first - 5 : first + 50, 0]
+    assert x.min() > x[0] - 0.05  # toward the user by no more than the base's momentum
+    assert x[-1] > x[0] + 0.3  # then away
     assert res["collisions_user"][0] == 0
 
 

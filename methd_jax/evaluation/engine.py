@@ -146,7 +146,7 @@ class EvalState:
     requester: jax.Array  # () int32
     requested: jax.Array  # () bool
     request_t: jax.Array  # () int32
-    nav_command: jax.Array  # (3,) last navigator command, world frame
+    nav_command: jax.Array  # (3,) what the navigator ramps from: its last command, world frame
     field: jax.Array  # (H, W) current plan's cost-to-go
     plan_goal: jax.Array  # (3,) goal of the current plan
     plan_t: jax.Array  # () int32 steps since the plan was made
@@ -442,10 +442,17 @@ class Engine:
             lambda: command,
         )
         command = jnp.where(direct, order.command, command)
-        nav_command = jnp.concatenate([rotate(pose[2], command[:2]), command[2:]])
-
         robot = self.robot.step(s.robot, command)
         new_pose = robot_lib.pose(robot)
+        # the navigator and the brake ramp from the command they gave last; after a method drove
+        # the base itself they ramp from the base's own velocity: a policy's last command (a
+        # bang-bang one's may point the other way) is not how the base moves when they take over
+        moving = robot_lib.velocity(robot)
+        nav_command = jnp.where(
+            direct,
+            jnp.concatenate([rotate(new_pose[2], moving[:2]), moving[2:]]),
+            jnp.concatenate([rotate(pose[2], command[:2]), command[2:]]),
+        )
 
         # bookkeeping
         ranges = self._scan(new_pose)
