@@ -2,7 +2,8 @@
 
 Behaviours (``MODES``):
 
-- **Chase**: the positioning method under test drives the robot (:mod:`.methods`).
+- **Chase**: the positioning method under test drives the robot (:mod:`.methods`); the navigator
+  that takes over from it starts from the base's velocity, not from the method's last command.
 - **Haptic**: on a request the navigator drives the base to the requester's HIP (0.2 m, 0.1 rad);
   then **Arm** holds still for T_arm = 3.3 s and the request counts as served.
 - **Escape**: whenever a user comes closer than 1.5 m (Chase or Haptic), the robot drives to an
