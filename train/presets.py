@@ -26,8 +26,10 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            that policy with p_s, the penalty on the base's stopping path
            (``env.weights.stopping=-100``: Table 4.1's obstacle terms see only where the base is,
            and its contacts come at speed), the critic fitted first and a learning rate of 5e-5;
-           52M transitions, 155 min as measured on two machines (~74 min on the faster).
-           Commands, figures and what did not work: ``docs/results.md`` and the card.
+           52M transitions, 155 min as measured on two machines. The same four stages run end
+           to end on one machine took 99 min and gave a policy that keeps its distance (T_pos
+           3.2 s): the recipe's outcome varies from run to run. Commands, figures and what did
+           not work: ``docs/results.md`` and the card.
 ``nav_cpu`` NavRL for a 2-core CPU: ``su_cpu``'s floors, rays, body and departures with two
            users (Table 4.3's weights, ``su_cpu``'s scaling), the goal from the shipped GuideRL
            policy (``assets/pretrained/guide``), started from the shipped SU policy
