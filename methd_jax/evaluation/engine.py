@@ -448,10 +448,9 @@ class Engine:
         # the navigator and the brake ramp from the command they gave last; after a method drove
         # the base itself they ramp from the base's own velocity: a policy's last command (a
         # bang-bang one's may point the other way) is not how the base moves when they take over
-        moving = robot_lib.velocity(robot)
         nav_command = jnp.where(
             direct,
-            jnp.concatenate([rotate(new_pose[2], moving[:2]), moving[2:]]),
+            robot.qvel[:3],  # the base's twist in the world frame
             jnp.concatenate([rotate(pose[2], command[:2]), command[2:]]),
         )
 
