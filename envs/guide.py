@@ -38,7 +38,7 @@ import numpy as np
 from brax.envs.base import Env, State
 from flax import struct
 
-from envs.nav import GUIDE_MAX_DELTA, guide_observation, load_bank
+from envs.nav import GUIDE_MAX_DELTA, guide_observation, guide_takes_wrist, load_bank
 from methd_jax.control import CONTROL_HZ
 from methd_jax.motion.features import HipConfig, MotionBank
 
@@ -50,6 +50,9 @@ class GuideWeights:
     correct: float = 20.0
     midpoint: float = 5.0
     action_smoothness: float = -0.05
+    request: float = 0.0
+    """Paid once, at the request: this weight times the choice as r_c scores it (sign * u_w); 0 in
+    Table 4.2. It pays for being right at the instant the accuracy is read, not a step later."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,12 +69,22 @@ class GuideConfig:
     """Seconds after the request until the episode ends (r_c is paid throughout)."""
     time_limit: float = 120.0
     """Episodes are truncated after this many seconds."""
+    hard_fraction: float = 0.0
+    """Share of episodes drawn from the pairs whose other user also stands still at the request
+    (:func:`standing_pairs`; ~14% of all pairs), the rest from all pairs: the pairs in which who
+    stopped first misleads most often, and the wrists decide."""
+    wrist: bool = False
+    """Add each user's wrist height above the head to the state (17 inputs; a departure from eq.
+    4.24): the arm rises in the last second before a request, which tells who asks when both users
+    stand still, a case the 15 inputs of eq. 4.24 cannot decide."""
 
     def __post_init__(self):
         if self.split not in ("train", "test", "all"):
             raise ValueError(f"split must be 'train', 'test' or 'all', got {self.split!r}")
         if not (self.cooldown > 0 and self.time_limit > 0):
             raise ValueError("cooldown and time_limit must be positive")
+        if not 0.0 <= self.hard_fraction <= 1.0:
+            raise ValueError(f"hard_fraction must lie in [0, 1], got {self.hard_fraction}")
 
 
 @struct.dataclass
@@ -103,6 +116,26 @@ def settled_steps(bank: MotionBank) -> np.ndarray:
     return np.minimum(last + 1, np.asarray(bank.request_step)).astype(np.int32)
 
 
+def still_since(bank: MotionBank) -> np.ndarray:
+    """(N, T): per trajectory and step, the step from which the user has stood still (slower than
+    ``SETTLED_SPEED``) up to that step; the step itself while they walk, 0 if still from the start."""
+    speed = np.linalg.norm(np.asarray(bank.vel_world)[..., :2], axis=-1)
+    steps = np.broadcast_to(np.arange(speed.shape[1]), speed.shape)
+    last_moving = np.maximum.accumulate(np.where(speed > SETTLED_SPEED, steps, -1), axis=1)
+    return (last_moving + 1).astype(np.int32)
+
+
+def standing_pairs(bank: MotionBank) -> np.ndarray:
+    """The ordered pairs (requester, other) whose requests differ and in which the other user
+    stands still at the requester's request: (M, 2) int32."""
+    request = np.asarray(bank.request_step)
+    since = still_since(bank)
+    i, j = np.nonzero(request[:, None] < request[None, :])
+    at = request[i]
+    hard = since[j, at] <= at
+    return np.stack([i[hard], j[hard]], 1).astype(np.int32)
+
+
 class GuideEnv(Env):
     """``guide``: move the user weight toward whoever will request next."""
 
@@ -112,12 +145,20 @@ class GuideEnv(Env):
         if self.bank.num_trajectories < 2:
             raise ValueError("guide needs at least two trajectories")
         self._settled = jnp.asarray(settled_steps(self.bank))
+        self._hard = jnp.zeros((1, 2), jnp.int32)
+        if config.hard_fraction > 0:
+            hard = standing_pairs(self.bank)
+            if len(hard) == 0:
+                raise ValueError(
+                    "hard_fraction > 0, but no pair of these trajectories has a user who stood longer"
+                )
+            self._hard = jnp.asarray(hard)
         self._cooldown_steps = round(config.cooldown * CONTROL_HZ)
         self._limit_steps = round(config.time_limit * CONTROL_HZ)
 
     @property
     def observation_size(self) -> int:
-        return 15
+        return 17 if self.config.wrist else 15
 
     @property
     def action_size(self) -> int:
@@ -125,7 +166,9 @@ class GuideEnv(Env):
 
     @property
     def observation_layout(self) -> dict[str, slice]:
-        return {"guide": slice(0, self.observation_size)}
+        if self.config.wrist:
+            return {"guide": slice(0, 15), "wrist": slice(15, 17)}
+        return {"guide": slice(0, 15)}
 
     @property
     def backend(self) -> str:
@@ -133,11 +176,16 @@ class GuideEnv(Env):
 
     def _observe(self, w: GuideWorld) -> jax.Array:
         feats = jax.vmap(self.bank.at, (0, None))(w.users, w.t)
-        return guide_observation(feats["vel_local"], feats["acc_local"], w.u_w, w.actions)
+        wrist = feats["wrist_height"] if self.config.wrist else None
+        return guide_observation(feats["vel_local"], feats["acc_local"], w.u_w, w.actions, wrist)
 
     def reset(self, rng: jax.Array) -> State:
-        k_users, k_start, key = jax.random.split(rng, 3)
+        k_users, k_hard, k_pick, k_start, key = jax.random.split(rng, 5)
         users = jax.random.choice(k_users, self.bank.num_trajectories, (2,), replace=False)
+        if self.config.hard_fraction > 0:
+            hard = self._hard[jax.random.randint(k_pick, (), 0, len(self._hard))]
+            hard = jnp.where(jax.random.bernoulli(k_pick, 0.5), hard, hard[::-1])  # either slot asks
+            users = jnp.where(jax.random.uniform(k_hard) < self.config.hard_fraction, hard, users)
         req = self.bank.request_step[users]
         latest = jnp.maximum(jnp.min(req) - START_LEAD * CONTROL_HZ, 0)
         w = GuideWorld(
@@ -167,6 +215,7 @@ class GuideEnv(Env):
             "reward/correct",
             "reward/midpoint",
             "reward/action_smoothness",
+            "reward/request",
             "u_w",
             "at_request",
             "correct_at_request",
@@ -185,12 +234,13 @@ class GuideEnv(Env):
         r_c = jnp.where(intent, sign * u_w, 0.0)
         r_m = jnp.where(intent, 0.0, jnp.maximum(1.0 - 4.0 * jnp.abs(u_w), 0.0))  # eq. 4.27
         p_a = (a - w.actions[0]) ** 2 + (a - 2 * w.actions[0] + w.actions[1]) ** 2
+        at_request = t == w.request_step
         weighted = {
             "reward/correct": cfg.weights.correct * r_c,
             "reward/midpoint": cfg.weights.midpoint * r_m,
             "reward/action_smoothness": cfg.weights.action_smoothness * p_a,
+            "reward/request": jnp.where(at_request, cfg.weights.request * sign * u_w, 0.0),
         }
-        at_request = t == w.request_step
         success = t >= w.request_step + self._cooldown_steps
         timeout = t >= self._limit_steps
         w = w.replace(t=t, u_w=u_w, actions=jnp.stack([a, w.actions[0]]))
@@ -221,20 +271,28 @@ def held_out_pairs(bank: MotionBank) -> np.ndarray:
 
 
 def pair_accuracy(
-    policy: Callable[[jax.Array], jax.Array], bank: MotionBank, pairs: np.ndarray | None = None
+    policy: Callable[[jax.Array], jax.Array],
+    bank: MotionBank,
+    pairs: np.ndarray | None = None,
+    lead: float = 0.0,
 ) -> tuple[float, int]:
     """GuideRL's accuracy on trajectory pairs (see :func:`pair_correct`): (accuracy, pairs)."""
-    correct = pair_correct(policy, bank, pairs)
+    correct = pair_correct(policy, bank, pairs, lead)
     return float(correct.mean()), len(correct)
 
 
 def pair_correct(
-    policy: Callable[[jax.Array], jax.Array], bank: MotionBank, pairs: np.ndarray | None = None
+    policy: Callable[[jax.Array], jax.Array],
+    bank: MotionBank,
+    pairs: np.ndarray | None = None,
+    lead: float = 0.0,
 ) -> np.ndarray:
     """Per pair, whether GuideRL names the first requester: both users start at their trajectories'
-    beginning (as in the evaluation's multi-user scenario), ``policy(obs15) -> action`` acts every
-    step as in :class:`GuideEnv`, and a pair is right when the sign of u_w at the first request
-    names the requester. ``pairs`` default to :func:`held_out_pairs`."""
+    beginning (as in the evaluation's multi-user scenario), ``policy(obs) -> action`` acts every
+    step as in :class:`GuideEnv` (with the wrists if its manifest says so, see
+    :func:`envs.nav.guide_takes_wrist`), and a pair is right when the sign of u_w ``lead`` seconds
+    before the first request (0: at it) names the requester; u_w is 0, which names no one, before
+    the first step. ``pairs`` default to :func:`held_out_pairs`."""
     pairs = held_out_pairs(bank) if pairs is None else np.asarray(pairs, np.int32)
     if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
         raise ValueError(f"pairs must be a non-empty (M, 2) array, got shape {pairs.shape}")
@@ -242,10 +300,12 @@ def pair_correct(
         raise ValueError(
             f"pairs index trajectories 0..{bank.num_trajectories - 1}, got {pairs.min()}..{pairs.max()}"
         )
+    if not (np.isfinite(lead) and lead >= 0):
+        raise ValueError(f"lead must be a non-negative number of seconds, got {lead}")
     request = np.asarray(bank.request_step)[pairs]
     if np.any(request[:, 0] == request[:, 1]):
         raise ValueError("a pair whose users request on the same step has no first requester")
-    env = GuideEnv(GuideConfig(), bank=bank)
+    env = GuideEnv(GuideConfig(wrist=guide_takes_wrist(policy)), bank=bank)
     steps = int(request.min(axis=1).max())
 
     def start(users):
@@ -266,13 +326,17 @@ def pair_correct(
         )
 
     def step(state, _):
-        return env.step(state, policy(state.obs)), state.metrics["correct_at_request"]
+        state = env.step(state, policy(state.obs))
+        return state, state.pipeline_state.u_w
 
     @jax.jit
     def run(users):
         states = jax.vmap(start)(users)
-        # the request's step is the last whose metrics count: scan one step past it
-        _, correct = jax.lax.scan(jax.vmap(step, (0, None)), states, None, steps + 1)
-        return correct.sum(axis=0)
+        _, u_w = jax.lax.scan(jax.vmap(step, (0, None)), states, None, steps)  # u_w[k]: at step k + 1
+        return u_w
 
-    return np.asarray(run(jnp.asarray(pairs))) > 0
+    first = request.min(axis=1)
+    at = first - round(lead * CONTROL_HZ) - 1
+    u_w = np.asarray(run(jnp.asarray(pairs)))[np.maximum(at, 0), np.arange(len(pairs))]
+    sign = np.where(request[:, 0] < request[:, 1], -1.0, 1.0)
+    return (at >= 0) & (np.sign(u_w) == sign)

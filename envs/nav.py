@@ -276,13 +276,16 @@ class NavEnv(Env):
         bank: MotionBank | None = None,
         guide_policy: Callable[[jax.Array], jax.Array] | None = None,
     ):
-        """``bank`` overrides ``config.motion``; ``guide_policy(obs15) -> action`` (a trained GuideRL
-        policy, deterministic) drives the goal of ``nav`` with two users instead of the scripted source."""
+        """``bank`` overrides ``config.motion``; ``guide_policy(obs) -> action`` (a trained GuideRL
+        policy, deterministic; with the users' wrist heights when its manifest says so, see
+        :func:`guide_takes_wrist`) drives the goal of ``nav`` with two users instead of the scripted
+        source."""
         self.config = config
         if guide_policy is not None and config.num_users != 2:
             raise ValueError("a GuideRL goal source needs exactly 2 users")
         self.bank = bank if bank is not None else load_bank(config.motion, config.split, config.hip)
         self.guide_policy = guide_policy
+        self._guide_wrist = guide_takes_wrist(guide_policy)
         self.robot = robot_lib.Robot(config.robot)
         self._lab = floors.lab() if config.lab else None
         # the lab twin padded to the procedural floors' capacity, so either fits one World
@@ -469,7 +472,8 @@ class NavEnv(Env):
         u_w, target, guide_actions = w.u_w, w.goal_target, w.guide_actions
         if cfg.num_users == 2:
             if self.guide_policy is not None:
-                obs = guide_observation(users["vel_local"], users["acc_local"], u_w, guide_actions)
+                wrist = users["wrist_height"] if self._guide_wrist else None
+                obs = guide_observation(users["vel_local"], users["acc_local"], u_w, guide_actions, wrist)
                 act = jnp.clip(jnp.reshape(self.guide_policy(obs), ()), -1.0, 1.0)
                 u_next = jnp.clip(u_w + GUIDE_MAX_DELTA * act, -1.0, 1.0)
                 guide_actions = jnp.stack([act, guide_actions[0]])
@@ -604,7 +608,20 @@ GUIDE_MAX_DELTA = 0.05
 
 
 def guide_observation(
-    vel_local: jax.Array, acc_local: jax.Array, u_w: jax.Array, actions: jax.Array
+    vel_local: jax.Array,
+    acc_local: jax.Array,
+    u_w: jax.Array,
+    actions: jax.Array,
+    wrist_height: jax.Array | None = None,
 ) -> jax.Array:
-    """GuideRL's 15-dim state (eq. 4.24): v_u1, v_u2, q_u1, q_u2 (user frames), u_w, a_{t-1}, a_{t-2}."""
-    return jnp.concatenate([vel_local[0], vel_local[1], acc_local[0], acc_local[1], u_w[None], actions])
+    """GuideRL's state: eq. 4.24's 15 values (v_u1, v_u2, q_u1, q_u2 in the users' frames, u_w,
+    a_{t-1}, a_{t-2}), then, given ``wrist_height`` (2,), each user's wrist height above the head."""
+    parts = [vel_local[0], vel_local[1], acc_local[0], acc_local[1], u_w[None], actions]
+    return jnp.concatenate(parts if wrist_height is None else [*parts, wrist_height])
+
+
+def guide_takes_wrist(policy) -> bool:
+    """Whether an exported GuideRL ``policy`` (see :func:`train.export.load`) reads the users' wrist
+    heights (``GuideConfig.wrist``); a bare callable is taken as eq. 4.24's 15 inputs."""
+    manifest = getattr(policy, "manifest", None)
+    return bool(manifest and "wrist" in manifest["observation_layout"])

@@ -1088,3 +1088,41 @@ def test_guide_goal_refuses_what_it_cannot_use(coarse_deploy):
 
     with pytest.raises(deploy.DeployError, match="not a GuideRL"):
         guide.GuideGoal(coarse_deploy, backend="numpy")
+
+
+def test_guide_goal_feeds_a_wrist_policy_the_wrists(tmp_path):
+    """A GuideRL policy trained with the wrists (``GuideConfig.wrist``): GuideGoal appends the
+    users' wrist heights to eq. 4.24's inputs as the training environment does, and refuses a tick
+    without them (and wrists for a policy that does not read them)."""
+    from envs.guide import GuideConfig, GuideEnv
+    from envs.nav import guide_observation
+    from methd_jax.deploy import guide
+
+    env = GuideEnv(GuideConfig(motion="sample", split="all", wrist=True))
+    export_random_policy(tmp_path / "w", env, "guide", networks.GuideActorCritic(), seed=4)
+    folder = export.export_deployment(tmp_path / "w", log=lambda *a: None)
+    policy = export.load(folder)
+    rng = np.random.default_rng(2)
+    goal = guide.GuideGoal(folder, backend="numpy")
+    assert goal.wrist
+    u_w, actions = 0.0, np.zeros(2)
+    for _ in range(20):
+        users = np.concatenate([rng.uniform(-3, 3, (2, 3)), rng.normal(0, 0.5, (2, 3))], 1)
+        acc, wrist, hips = rng.normal(0, 1, (2, 3)), rng.uniform(-0.8, -0.3, 2), rng.uniform(-3, 3, (2, 3))
+        c, s = np.cos(users[:, 2:3]), np.sin(users[:, 2:3])
+
+        def own(v, c=c, s=s):  # world (vx, vy, wz) in the user's frame
+            return np.concatenate([c * v[:, :1] + s * v[:, 1:2], -s * v[:, :1] + c * v[:, 1:2], v[:, 2:]], 1)
+
+        obs = guide_observation(own(users[:, 3:]), own(acc), jnp.float32(u_w), actions, wrist)
+        act = float(np.clip(np.asarray(policy(obs)).reshape(()), -1, 1))
+        u_w, actions = float(np.clip(u_w + 0.05 * act, -1, 1)), np.array([act, actions[0]])
+        goal.tick(users, hips, acceleration=acc, wrist=wrist)
+        assert goal.u_w == pytest.approx(u_w, abs=1e-5)
+    with pytest.raises(deploy.DeployError, match="pass wrist"):
+        goal.tick(users, hips, acceleration=acc)
+    plain = GuideEnv(GuideConfig(motion="sample", split="all"))
+    export_random_policy(tmp_path / "p", plain, "guide", networks.GuideActorCritic(), seed=4)
+    folder = export.export_deployment(tmp_path / "p", log=lambda *a: None)
+    with pytest.raises(deploy.DeployError, match="does not read wrist"):
+        guide.GuideGoal(folder, backend="numpy").tick(users, hips, acceleration=acc, wrist=wrist)

@@ -428,6 +428,33 @@ def test_guide_rewards_and_accuracy(bank):
     assert r == pytest.approx(20.0)
 
 
+def test_guide_request_weight_pays_the_choice_once_at_the_request(bank):
+    from envs.guide import GuideWeights
+
+    env = envs.make("guide", bank=bank, weights=GuideWeights(request=100.0))
+    state = jax.jit(env.reset)(jax.random.key(3))
+    sign = -1.0 if int(state.pipeline_state.requester) == 0 else 1.0
+    step = jax.jit(env.step)
+    paid = []
+    while not float(state.done):  # toward the requester, then back a little from 0.3 s before
+        late = int(state.pipeline_state.t) >= int(state.pipeline_state.request_step) - 15
+        state = step(state, jnp.full(1, sign * (-0.2 if late else 1.0)))
+        paid.append(
+            (
+                float(state.metrics["at_request"]),
+                float(state.metrics["reward/request"]),
+                float(state.pipeline_state.u_w),
+            )
+        )
+    at, bonus, u_w = np.array(paid).T
+    assert at.sum() == 1 and np.all(bonus[at == 0] == 0.0)
+    assert (
+        bonus[at == 1][0] == pytest.approx(100.0 * sign * u_w[at == 1][0])
+        and 0.8 < bonus[at == 1][0] / 100 < 0.9
+    )
+    assert "reward/request" in envs.make("guide", bank=bank).reset(jax.random.key(0)).metrics
+
+
 def test_guide_pays_the_midpoint_until_the_intent_shows_and_the_choice_after(bank):
     env = envs.make("guide", bank=bank)
     settled, request = guide_lib.settled_steps(bank), np.asarray(bank.request_step)
@@ -477,15 +504,21 @@ def test_pair_accuracy_follows_u_w_from_the_trajectories_beginning_to_the_first_
         return jnp.where(jnp.minimum(s0, s1) < 0.05, jnp.where(s1 < s0, 1.0, -1.0), drift)[None]
 
     got = guide_lib.pair_correct(policy, bank, pairs)
+    early = guide_lib.pair_correct(policy, bank, pairs, lead=0.4)
     vel = np.asarray(bank.vel_local)
-    want = []
+    want, want_early = [], []
     for a, b in pairs:
         first = min(request[a], request[b])
-        u_w = 0.0
+        u_w = [0.0]
         for t in range(first):
-            u_w = float(np.clip(u_w + 0.05 * _still_user_np(vel[a, t], vel[b, t], u_w), -1.0, 1.0))
-        want.append(np.sign(u_w) == (-1.0 if request[a] < request[b] else 1.0))
+            step = 0.05 * _still_user_np(vel[a, t], vel[b, t], u_w[-1])
+            u_w.append(float(np.clip(u_w[-1] + step, -1.0, 1.0)))
+        sign = -1.0 if request[a] < request[b] else 1.0
+        want.append(np.sign(u_w[-1]) == sign)
+        want_early.append(first > 20 and np.sign(u_w[-21]) == sign)  # 0.4 s: 20 steps earlier
     np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(early, want_early)
+    assert early.sum() < got.sum()  # the still-user rule is right more often at the request
     always_second = guide_lib.pair_accuracy(lambda obs: jnp.ones(1), bank, pairs)
     assert always_second == (np.mean(request[pairs[:, 1]] < request[pairs[:, 0]]), len(pairs))
     assert guide_lib.pair_accuracy(lambda obs: jnp.zeros(1), bank, pairs)[0] == 0.0
@@ -495,6 +528,51 @@ def test_pair_accuracy_follows_u_w_from_the_trajectories_beginning_to_the_first_
     ):
         with pytest.raises(ValueError, match=message):
             guide_lib.pair_correct(policy, bank, bad)
+    with pytest.raises(ValueError, match="lead must be"):
+        guide_lib.pair_correct(policy, bank, pairs, lead=-1.0)
+
+
+def test_standing_pairs_are_those_whose_other_user_stands_at_the_request(bank):
+    speed = np.linalg.norm(np.asarray(bank.vel_world)[..., :2], axis=-1)
+    since = guide_lib.still_since(bank)
+    for n in range(bank.num_trajectories):  # against a plain loop
+        start = 0
+        for t in range(speed.shape[1]):
+            start = t + 1 if speed[n, t] > guide_lib.SETTLED_SPEED else start
+            assert since[n, t] == start, (n, t)
+    request = np.asarray(bank.request_step)
+    want = {
+        (i, j)
+        for i in range(len(request))
+        for j in range(len(request))
+        if request[i] < request[j] and speed[j, request[i]] <= guide_lib.SETTLED_SPEED
+    }
+    got = {tuple(p) for p in guide_lib.standing_pairs(bank).tolist()}
+    assert got == want and len(want) > 0
+
+
+def test_guide_with_wrists_and_standing_pairs(bank):
+    env = envs.make("guide", bank=bank, wrist=True, hard_fraction=1.0)
+    assert env.observation_size == 17
+    assert {k: (v.start, v.stop) for k, v in env.observation_layout.items()} == {
+        "guide": (0, 15),
+        "wrist": (15, 17),
+    }
+    states = jax.vmap(env.reset)(jax.random.split(jax.random.key(0), 64))
+    w = states.pipeline_state
+    standing = {tuple(p) for p in guide_lib.standing_pairs(bank).tolist()}
+    requester, other = np.asarray(w.requester), 1 - np.asarray(w.requester)
+    users = np.asarray(w.users)
+    rows = np.arange(64)
+    assert all((a, b) in standing for a, b in zip(users[rows, requester], users[rows, other], strict=True))
+    assert 0 < requester.mean() < 1  # either slot asks
+    wrist = np.asarray(bank.wrist_height)[users, np.asarray(w.t)[:, None]]
+    np.testing.assert_array_equal(np.asarray(states.obs)[:, 15:], wrist)
+    plain = envs.make("guide", bank=bank)
+    assert plain.observation_size == 15
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="hard_fraction"):
+            envs.make("guide", bank=bank, hard_fraction=bad)
 
 
 def test_make_rejects_bad_options(bank):

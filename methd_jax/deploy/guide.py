@@ -4,8 +4,10 @@
 turns the two tracked users into the user weight u_w (eq. 4.25: u_w += 0.05 a, clipped to [-1, 1])
 and the goal pose between their haptic interaction points (eq. 4.22/4.23), exactly as
 ``envs.nav.NavEnv`` does in training: the 15 inputs of eq. 4.24 are each user's velocity and
-acceleration in their own frame, u_w and the last two actions. Hand the goal to
-:class:`methd_jax.deploy.Controller` of the NavRL policy as ``Inputs.goal``.
+acceleration in their own frame, u_w and the last two actions, and for a policy trained with the
+wrists (``GuideConfig.wrist``; its manifest's observation has a ``wrist`` field) each user's wrist
+height above the head. Hand the goal to :class:`methd_jax.deploy.Controller` of the NavRL policy as
+``Inputs.goal``.
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ class GuideGoal:
         self.policy = load_policy(path, backend)
         self.max_delta = float(manifest["action"]["scale"][0])
         self.dt = 1.0 / float(manifest["deployment"]["control_hz"])
+        self.wrist = "wrist" in manifest["observation_layout"]
+        """Whether the policy reads the users' wrist heights (pass ``wrist`` to :meth:`tick`)."""
         self.reset()
 
     def reset(self):
@@ -53,9 +57,12 @@ class GuideGoal:
         self.actions = np.zeros(2)
         self.last_velocity: np.ndarray | None = None
 
-    def observation(self, users: np.ndarray, acceleration: np.ndarray | None = None) -> np.ndarray:
+    def observation(
+        self, users: np.ndarray, acceleration: np.ndarray | None = None, wrist: np.ndarray | None = None
+    ) -> np.ndarray:
         """Eq. 4.24 from ``users`` (2, 6): x, y, yaw, vx, vy, wz in the world; ``acceleration``
-        (2, 3) likewise in the world, or None to difference successive velocities."""
+        (2, 3) likewise in the world, or None to difference successive velocities; ``wrist`` (2,):
+        each user's wrist height minus head height in m, which a policy with :attr:`wrist` needs."""
         users = np.asarray(users, np.float64)
         if users.shape != (2, 6) or not np.isfinite(users).all():
             raise DeployError(f"users must be a finite (2, 6) array, got shape {users.shape}")
@@ -72,15 +79,31 @@ class GuideGoal:
             return np.concatenate([rotate(-users[:, 2], v[:, :2]), v[:, 2:]], 1)
 
         v, q = own_frame(velocity), own_frame(acceleration)
-        return np.concatenate([v[0], v[1], q[0], q[1], [self.u_w], self.actions]).astype(np.float32)
+        parts = [v[0], v[1], q[0], q[1], [self.u_w], self.actions]
+        if self.wrist:
+            if wrist is None:
+                raise DeployError("this GuideRL policy reads the users' wrist heights: pass wrist (2,)")
+            wrist = np.asarray(wrist, np.float64)
+            if wrist.shape != (2,) or not np.isfinite(wrist).all():
+                raise DeployError(f"wrist must be a finite (2,) array, got shape {wrist.shape}")
+            parts.append(wrist)
+        elif wrist is not None:
+            raise DeployError("this GuideRL policy does not read wrist heights (eq. 4.24's 15 inputs)")
+        return np.concatenate(parts).astype(np.float32)
 
-    def tick(self, users: np.ndarray, hips: np.ndarray, acceleration: np.ndarray | None = None) -> np.ndarray:
+    def tick(
+        self,
+        users: np.ndarray,
+        hips: np.ndarray,
+        acceleration: np.ndarray | None = None,
+        wrist: np.ndarray | None = None,
+    ) -> np.ndarray:
         """One control tick: u_w updated from the users (see :meth:`observation`); returns the goal
         between ``hips`` (2, 3) (x, y, yaw of each user's HIP in the world)."""
         hips = np.asarray(hips, np.float64)
         if hips.shape != (2, 3) or not np.isfinite(hips).all():
             raise DeployError(f"hips must be a finite (2, 3) array, got shape {hips.shape}")
-        obs = self.observation(users, acceleration)
+        obs = self.observation(users, acceleration, wrist)
         action = float(np.clip(np.asarray(self.policy(obs)).reshape(-1)[0], -1.0, 1.0))
         self.u_w = float(np.clip(self.u_w + self.max_delta * action, -1.0, 1.0))
         self.actions = np.array([action, self.actions[0]])
