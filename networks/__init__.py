@@ -10,6 +10,7 @@ from networks.actor_critic import (
     count,
     make_inference_fn,
     policy_count,
+    transfer_guide_inputs,
     transfer_inputs,
 )
 
@@ -35,5 +36,6 @@ __all__ = [
     "from_spec",
     "make_inference_fn",
     "policy_count",
+    "transfer_guide_inputs",
     "transfer_inputs",
 ]

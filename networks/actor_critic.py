@@ -216,6 +216,44 @@ def transfer_inputs(
     return {"params": out}
 
 
+def transfer_guide_inputs(source: dict, target: dict, source_fields: dict, target_fields: dict) -> dict:
+    """:class:`GuideActorCritic` parameters ``source`` carried over to a network whose observation
+    has more fields (``*_fields``: name -> (start, stop)): ``target``'s shapes with every array of
+    ``source``, the rows of the two layers that read the observation (the actor's and the critic's
+    first) rearranged by field name; a field only the target has gets zero rows, so the carried-over
+    network starts out ignoring it."""
+    src, dst = source["params"], target["params"]
+    missing = sorted(set(source_fields) - set(target_fields))
+    if missing:
+        raise ValueError(f"the target observation lacks the source's fields {missing}")
+    for name, (a, b) in source_fields.items():
+        if target_fields[name][1] - target_fields[name][0] != b - a:
+            raise ValueError(f"field {name!r} has {b - a} values in the source, not in the target")
+
+    def rows(kernel, size):
+        out = jnp.zeros((size, kernel.shape[1]), kernel.dtype)
+        for name, (a, b) in source_fields.items():
+            out = out.at[target_fields[name][0] : target_fields[name][0] + b - a].set(kernel[a:b])
+        return out
+
+    out = jax.tree.map(lambda x: x, src)
+    first = (("actor", "hidden0"), ("critic0",))
+    for path, leaf in jax.tree_util.tree_leaves_with_path(dst):
+        keys = tuple(k.key for k in path)
+        theirs = functools.reduce(lambda d, k: d[k], keys, src)
+        if keys[:-1] in first and keys[-1] == "kernel":
+            if theirs.shape[1] != leaf.shape[1]:
+                raise ValueError(
+                    f"{'/'.join(keys)}: width {theirs.shape[1]} in the source, {leaf.shape[1]} in the target"
+                )
+            functools.reduce(lambda d, k: d[k], keys[:-1], out)["kernel"] = rows(theirs, leaf.shape[0])
+        elif theirs.shape != leaf.shape:
+            raise ValueError(
+                f"{'/'.join(keys)}: shape {theirs.shape} in the source, {leaf.shape} in the target"
+            )
+    return {"params": out}
+
+
 class GuidePolicy(nn.Module):
     """GuideRL's policy: ``obs (..., 15) -> (mean, log_std)`` (the critic is a separate MLP)."""
 

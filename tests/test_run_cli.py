@@ -236,6 +236,59 @@ def test_guide_run_is_the_nav_runs_goal_source(tmp_path):
         run_lib.build(apply_overrides(preset("nav"), [*TINY, f"guide_run={SU_POLICY}"]))
 
 
+def test_guide_with_wrists_starts_from_a_policy_without_them(tmp_path):
+    """``env.wrist=true init_from=<a 15-input GuideRL policy>``: the started policy acts as the
+    source whatever the wrists read; ``noise_restart`` puts the action noise back at
+    ``init_log_std``; a NavRL environment feeds such a policy the users' wrists."""
+    import jax
+    import jax.numpy as jnp
+
+    from envs.nav import guide_takes_wrist
+    from train import run as run_lib
+
+    source = _random_guide_run(tmp_path / "guide")
+    old = export.load(source)
+    args = ["env.motion=sample", "hidden=16,16", "num_envs=4", f"init_from={source}"]
+    setup = run_lib.build(apply_overrides(preset("guide"), [*args, "env.wrist=true"]))
+    fresh = jax.jit(setup.trainer.init)(jax.random.key(1))
+    warm = run_lib._warm_start(fresh, source, setup)
+    obs = jax.random.normal(jax.random.key(0), (32, 17))
+    new = export.Policy(
+        {**old.manifest, "observation_layout": {"guide": [0, 15], "wrist": [15, 17]}},
+        warm.params,
+        warm.obs_stats.mean,
+        warm.obs_stats.std,
+    )
+    assert guide_takes_wrist(new) and not guide_takes_wrist(old)
+    np.testing.assert_allclose(new(obs), old(obs[:, :15]), atol=1e-6)
+    np.testing.assert_allclose(new(obs.at[:, 15:].set(-0.3)), old(obs[:, :15]), atol=1e-6)
+    old_log_std = np.asarray(old.params["params"]["actor"]["log_std"])
+    np.testing.assert_array_equal(np.asarray(warm.params["params"]["actor"]["log_std"]), old_log_std)
+    restarted = apply_overrides(
+        preset("guide"), [*args, "env.wrist=true", "noise_restart=true", "init_log_std=-0.5"]
+    )
+    setup = run_lib.build(restarted)
+    warm = run_lib._warm_start(jax.jit(setup.trainer.init)(jax.random.key(1)), source, setup)
+    assert np.asarray(warm.params["params"]["actor"]["log_std"]).tolist() == [-0.5]
+    with pytest.raises(ConfigError, match="noise_restart needs init_from"):
+        apply_overrides(preset("guide"), ["noise_restart=true"])
+
+    # the NavRL environment hands a wrist policy the users' wrist heights
+    from envs.nav import NavEnv
+
+    seen = []
+
+    def wrist_policy(obs):
+        seen.append(obs.shape)
+        return jnp.zeros(1)
+
+    wrist_policy.manifest = new.manifest
+    env = NavEnv(run_lib.build(apply_overrides(preset("nav"), TINY)).env.config, guide_policy=wrist_policy)
+    state = env.reset(jax.random.key(0))
+    env.step(state, jnp.zeros(3))
+    assert seen and all(shape == (17,) for shape in seen)
+
+
 @pytest.mark.slow
 def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
     guide = tmp_path / "guide"

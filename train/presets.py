@@ -114,6 +114,10 @@ class RunConfig:
     statistics; same network, observation size and num_envs; floors, rewards and PPO settings may
     differ) or from an exported policy folder (parameters and observation statistics; the run may
     see more observation fields, e.g. a second user, which start at zero weight)."""
+    noise_restart: bool = False
+    """With ``init_from``: the policy's action noise (its log standard deviation) restarts at
+    ``init_log_std`` instead of the source's, so that PPO explores again (e.g. what inputs the
+    source did not see allow)."""
     critic_warmup: int = 0
     """With ``init_from``: iterations in which only the critic learns before PPO starts
     (:meth:`train.ppo.Trainer.fit_critic`; an exported policy carries no critic, and PPO on a
@@ -131,6 +135,8 @@ class RunConfig:
                 raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.ppo.anchor_scale and not self.init_from:
             raise ConfigError("ppo.anchor_scale needs init_from (the policy it anchors to)")
+        if self.noise_restart and not self.init_from:
+            raise ConfigError("noise_restart needs init_from (the policy whose noise restarts)")
         if self.critic_warmup < 0 or (self.critic_warmup and not self.init_from):
             raise ConfigError(f"critic_warmup must be >= 0 and needs init_from, got {self.critic_warmup}")
         if not self.hidden or min(self.hidden) < 1:

@@ -90,6 +90,22 @@ def _warm_start(state, source: Path, setup: Setup):
     parameters, optimiser, statistics and learning rate; of an exported policy folder, its
     parameters and observation statistics (see :func:`_from_policy`). Environments, key and
     iteration stay fresh."""
+    state = _learned(state, source, setup)
+    if setup.config.noise_restart:
+        state = state.replace(params=_restart_noise(state.params, setup.config.init_log_std))
+    return state
+
+
+def _restart_noise(params, log_std: float):
+    """``params`` with every ``log_std`` (the policy's action noise) set to ``log_std``."""
+
+    def restart(path, leaf):
+        return jnp.full_like(leaf, log_std) if path[-1].key == "log_std" else leaf
+
+    return jax.tree_util.tree_map_with_path(restart, params)
+
+
+def _learned(state, source: Path, setup: Setup):
     if (source / "manifest.json").is_file():
         return _from_policy(state, source, setup)
     if not (source / "checkpoints").is_dir():
@@ -127,11 +143,13 @@ def _from_policy(state, folder: Path, setup: Setup):
     layout = getattr(setup.env, "observation_layout", None)
     size = state.obs_stats.mean.shape[0]
     target = {k: (v.start, v.stop) for k, v in layout.items()} if layout else {"obs": (0, size)}
-    if spec["class"] != "ActorCritic" and source != target:
+    if spec["class"] not in ("ActorCritic", "GuideActorCritic") and source != target:
         raise ConfigError(f"init_from={folder}: its observation differs from this run's")
     try:
         if spec["class"] == "ActorCritic":
             params = networks.transfer_inputs(policy.params, state.params, spec["num_rays"], source, target)
+        elif source != target:
+            params = networks.transfer_guide_inputs(policy.params, state.params, source, target)
         else:
             params = policy.params
             if _shapes(params) != _shapes(state.params):
