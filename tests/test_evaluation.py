@@ -649,8 +649,10 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys, full):
         assert (out / name).stat().st_size > 1000, name
     assert "SU DRL (thesis)" in (out / "table.md").read_text()
     # the shipped GuideRL policy's accuracy on the (4 sample) trajectories' ordered pairs
-    assert data["guide"]["pairs"] == 12 and 0.0 <= data["guide"]["accuracy"] <= 1.0
-    assert "GuideRL: the requesting user named at the request" in text
+    g = data["guide"]
+    assert g["pairs"] == 12 and 0.0 <= g["accuracy_early"] <= 1.0 and 0.0 <= g["accuracy"] <= 1.0
+    assert g["early_s"] == evaluate.EARLY == 1.0
+    assert "GuideRL: the requesting user named at the request" in text and "1 s before it in" in text
 
 
 @pytest.mark.parametrize(

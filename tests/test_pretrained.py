@@ -107,7 +107,7 @@ def test_deployed_guide_steps_u_w_as_the_training_environment(held_out_bank):
     """methd_jax.deploy.GuideGoal (onnx and numpy) against the JAX policy on a held-out pair's
     recorded users: the same u_w every step and the goal of envs.goals."""
     from envs.goals import goal_from_weight
-    from envs.nav import guide_observation
+    from envs.nav import guide_observation, guide_takes_wrist
 
     policy = export.load(GUIDE)
     a, b, steps = 3, 53, 400
@@ -115,10 +115,20 @@ def test_deployed_guide_steps_u_w_as_the_training_environment(held_out_bank):
         k: np.asarray(getattr(held_out_bank, k))[[a, b], :steps]
         for k in ("pose", "vel_world", "acc_world", "hip")
     }
-    feats |= {k: np.asarray(getattr(held_out_bank, k))[[a, b], :steps] for k in ("vel_local", "acc_local")}
+    feats |= {
+        k: np.asarray(getattr(held_out_bank, k))[[a, b], :steps]
+        for k in ("vel_local", "acc_local", "wrist_height")
+    }
+    wrist = guide_takes_wrist(policy)  # a policy trained with the wrists reads them too
     u_w, actions, want = 0.0, np.zeros(2), []
     for t in range(steps):
-        obs = guide_observation(feats["vel_local"][:, t], feats["acc_local"][:, t], np.float32(u_w), actions)
+        obs = guide_observation(
+            feats["vel_local"][:, t],
+            feats["acc_local"][:, t],
+            np.float32(u_w),
+            actions,
+            feats["wrist_height"][:, t] if wrist else None,
+        )
         act = float(np.clip(np.asarray(policy(obs)).reshape(()), -1, 1))
         u_w, actions = float(np.clip(u_w + 0.05 * act, -1, 1)), np.array([act, actions[0]])
         want.append((u_w, np.asarray(goal_from_weight(u_w, *feats["hip"][:, t]))))
@@ -126,7 +136,12 @@ def test_deployed_guide_steps_u_w_as_the_training_environment(held_out_bank):
         guide = deploy.GuideGoal(GUIDE, backend=backend)
         for t in range(steps):
             users = np.concatenate([feats["pose"][:, t], feats["vel_world"][:, t]], 1)
-            goal = guide.tick(users, feats["hip"][:, t], acceleration=feats["acc_world"][:, t])
+            goal = guide.tick(
+                users,
+                feats["hip"][:, t],
+                acceleration=feats["acc_world"][:, t],
+                wrist=feats["wrist_height"][:, t] if wrist else None,
+            )
             assert guide.u_w == pytest.approx(want[t][0], abs=1e-4), (backend, t)
             np.testing.assert_allclose(goal, want[t][1], atol=1e-4, err_msg=f"{backend} {t}")
     assert np.ptp([w[0] for w in want]) > 0.5  # the pair makes GuideRL commit, not idle at 0

@@ -275,18 +275,28 @@ def _load(run: str | Path, kind: str, want: str) -> export.Policy:
 
 def guide_accuracy(run: str | Path, bank) -> dict:
     """GuideRL's accuracy on every ordered pair of ``bank``'s trajectories whose requests differ
-    (see :func:`envs.guide.pair_accuracy`): ``{"accuracy": fraction, "pairs": count}``."""
+    (see :func:`envs.guide.pair_accuracy`) at the request and ``EARLY`` s before it (how early
+    the goal a NavRL policy drives to is right): ``{"accuracy": fraction, "pairs": count,
+    "accuracy_early": fraction, "early_s": EARLY}``."""
     policy = load_guide(run)
     if len(guide_env.held_out_pairs(bank)) == 0:
         raise ConfigError("GuideRL's accuracy needs two trajectories whose requests differ")
     accuracy, pairs = guide_env.pair_accuracy(policy, bank)
-    return {"accuracy": accuracy, "pairs": pairs}
+    early, _ = guide_env.pair_accuracy(policy, bank, lead=EARLY)
+    return {"accuracy": accuracy, "pairs": pairs, "accuracy_early": early, "early_s": EARLY}
+
+
+EARLY = 1.0
+"""s before the request at which GuideRL's accuracy is also reported."""
 
 
 def _guide_text(g: dict) -> str:
+    early = ""
+    if "accuracy_early" in g:
+        early = f", {g['early_s']:g} s before it in {100 * g['accuracy_early']:.1f}%"
     return (
         f"GuideRL: the requesting user named at the request in {100 * g['accuracy']:.1f}% of "
-        f"{g['pairs']} ordered pairs of the test trajectories (thesis: 99%)"
+        f"{g['pairs']} ordered pairs of the test trajectories (thesis: 99%){early}"
     )
 
 
