@@ -71,7 +71,7 @@ class GuideConfig:
     """Episodes are truncated after this many seconds."""
     hard_fraction: float = 0.0
     """Share of episodes drawn from the pairs whose other user also stands still at the request
-    (:func:`standing_pairs`; ~14% of all pairs), the rest from all pairs: the pairs in which who
+    (:func:`standing_pairs`; 26% of the default data's pairs), the rest from all pairs: the pairs in which who
     stopped first misleads most often, and the wrists decide."""
     wrist: bool = False
     """Add each user's wrist height above the head to the state (17 inputs; a departure from eq.
@@ -150,7 +150,8 @@ class GuideEnv(Env):
             hard = standing_pairs(self.bank)
             if len(hard) == 0:
                 raise ValueError(
-                    "hard_fraction > 0, but no pair of these trajectories has a user who stood longer"
+                    "hard_fraction > 0, but in no pair of these trajectories does the other user "
+                    "stand at the request"
                 )
             self._hard = jnp.asarray(hard)
         self._cooldown_steps = round(config.cooldown * CONTROL_HZ)
@@ -180,11 +181,11 @@ class GuideEnv(Env):
         return guide_observation(feats["vel_local"], feats["acc_local"], w.u_w, w.actions, wrist)
 
     def reset(self, rng: jax.Array) -> State:
-        k_users, k_hard, k_pick, k_start, key = jax.random.split(rng, 5)
+        k_users, k_hard, k_pick, k_slot, k_start, key = jax.random.split(rng, 6)
         users = jax.random.choice(k_users, self.bank.num_trajectories, (2,), replace=False)
         if self.config.hard_fraction > 0:
             hard = self._hard[jax.random.randint(k_pick, (), 0, len(self._hard))]
-            hard = jnp.where(jax.random.bernoulli(k_pick, 0.5), hard, hard[::-1])  # either slot asks
+            hard = jnp.where(jax.random.bernoulli(k_slot, 0.5), hard, hard[::-1])  # either slot asks
             users = jnp.where(jax.random.uniform(k_hard) < self.config.hard_fraction, hard, users)
         req = self.bank.request_step[users]
         latest = jnp.maximum(jnp.min(req) - START_LEAD * CONTROL_HZ, 0)
