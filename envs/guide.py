@@ -181,9 +181,10 @@ class GuideEnv(Env):
         return guide_observation(feats["vel_local"], feats["acc_local"], w.u_w, w.actions, wrist)
 
     def reset(self, rng: jax.Array) -> State:
-        k_users, k_hard, k_pick, k_slot, k_start, key = jax.random.split(rng, 6)
+        k_users, k_start, key = jax.random.split(rng, 3)
         users = jax.random.choice(k_users, self.bank.num_trajectories, (2,), replace=False)
-        if self.config.hard_fraction > 0:
+        if self.config.hard_fraction > 0:  # from the world's key: without it the draws stay as they were
+            key, k_hard, k_pick, k_slot = jax.random.split(key, 4)
             hard = self._hard[jax.random.randint(k_pick, (), 0, len(self._hard))]
             hard = jnp.where(jax.random.bernoulli(k_slot, 0.5), hard, hard[::-1])  # either slot asks
             users = jnp.where(jax.random.uniform(k_hard) < self.config.hard_fraction, hard, users)
