@@ -54,9 +54,11 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            this and a second stage of 700 iterations (~11 min) from it (``init_from=``) that adds
            each user's wrist height to the state (``env.wrist=true``, 17 inputs: eq. 4.24's cannot
            tell who asks when both users stand still, the raised arm can; the wrists start at zero
-           weight), restarts the action noise (``noise_restart=true``) and draws half its episodes
-           from the pairs in which both users stand at the request (``env.hard_fraction=0.5``):
-           97.1% of the held-out pairs at the request, the first stage 95.6%. Commands: the card.
+           weight), restarts the action noise (``noise_restart=true``), draws half its episodes
+           from the pairs in which both users stand at the request (``env.hard_fraction=0.5``) and
+           pays the choice once more at the request (``env.weights.request=1000``: the arm rises
+           in the last second and u_w turns at most 0.05 a step, so the policy must turn at once):
+           98.8% of the held-out pairs at the request, the first stage 95.6%. Commands: the card.
 ``nav``    NavRL with two users: 2,048 environments, 960,000 timesteps; the goal comes from the
            GuideRL policy of ``guide_run=RUN_DIR`` or, without one, from the scripted source.
 =========  =====================================================================================
