@@ -179,6 +179,16 @@ class ActorCritic(nn.Module):
         }
 
 
+def _check_fields(source_fields: dict, target_fields: dict) -> None:
+    """The target observation must hold every source field with as many values."""
+    missing = sorted(set(source_fields) - set(target_fields))
+    if missing:
+        raise ValueError(f"the target observation lacks the source's fields {missing}")
+    for name, (a, b) in source_fields.items():
+        if target_fields[name][1] - target_fields[name][0] != b - a:
+            raise ValueError(f"field {name!r} has {b - a} values in the source, not in the target")
+
+
 def transfer_inputs(
     source: dict, target: dict, num_rays: int, source_fields: dict, target_fields: dict
 ) -> dict:
@@ -189,12 +199,7 @@ def transfer_inputs(
     has gets zero rows, so the carried-over network starts out ignoring it. Every other array must
     have the same shape in both."""
     src, dst = source["params"], target["params"]
-    missing = sorted(set(source_fields) - set(target_fields))
-    if missing:
-        raise ValueError(f"the target observation lacks the source's fields {missing}")
-    for name, (a, b) in source_fields.items():
-        if target_fields[name][1] - target_fields[name][0] != b - a:
-            raise ValueError(f"field {name!r} has {b - a} values in the source, not in the target")
+    _check_fields(source_fields, target_fields)
     out = jax.tree.map(lambda x: x, src)
     for path, leaf in jax.tree_util.tree_leaves_with_path(dst):
         theirs = functools.reduce(lambda d, k: d[k.key], path, src)
@@ -223,12 +228,7 @@ def transfer_guide_inputs(source: dict, target: dict, source_fields: dict, targe
     first) rearranged by field name; a field only the target has gets zero rows, so the carried-over
     network starts out ignoring it."""
     src, dst = source["params"], target["params"]
-    missing = sorted(set(source_fields) - set(target_fields))
-    if missing:
-        raise ValueError(f"the target observation lacks the source's fields {missing}")
-    for name, (a, b) in source_fields.items():
-        if target_fields[name][1] - target_fields[name][0] != b - a:
-            raise ValueError(f"field {name!r} has {b - a} values in the source, not in the target")
+    _check_fields(source_fields, target_fields)
 
     def rows(kernel, size):
         out = jnp.zeros((size, kernel.shape[1]), kernel.dtype)
