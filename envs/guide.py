@@ -30,7 +30,7 @@ at the request step.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -278,7 +278,9 @@ def pair_accuracy(
     pairs: np.ndarray | None = None,
     lead: float = 0.0,
 ) -> tuple[float, int]:
-    """GuideRL's accuracy on trajectory pairs (see :func:`pair_correct`): (accuracy, pairs)."""
+    """GuideRL's accuracy on trajectory pairs (see :func:`pair_correct`) at one lead: (accuracy, pairs)."""
+    if np.ndim(lead) != 0:
+        raise ValueError(f"pair_accuracy takes one lead; pair_correct takes several, got {lead}")
     correct = pair_correct(policy, bank, pairs, lead)
     return float(correct.mean()), len(correct)
 
@@ -287,14 +289,15 @@ def pair_correct(
     policy: Callable[[jax.Array], jax.Array],
     bank: MotionBank,
     pairs: np.ndarray | None = None,
-    lead: float = 0.0,
+    lead: float | Sequence[float] = 0.0,
 ) -> np.ndarray:
     """Per pair, whether GuideRL names the first requester: both users start at their trajectories'
     beginning (as in the evaluation's multi-user scenario), ``policy(obs) -> action`` acts every
     step as in :class:`GuideEnv` (with the wrists if its manifest says so, see
     :func:`envs.nav.guide_takes_wrist`), and a pair is right when the sign of u_w ``lead`` seconds
     before the first request (0: at it) names the requester; u_w is 0, which names no one, before
-    the first step. ``pairs`` default to :func:`held_out_pairs`."""
+    the first step. ``pairs`` default to :func:`held_out_pairs`. Several leads share one rollout:
+    a sequence of L leads gives an (L, M) array, one lead an (M,) array."""
     pairs = held_out_pairs(bank) if pairs is None else np.asarray(pairs, np.int32)
     if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) == 0:
         raise ValueError(f"pairs must be a non-empty (M, 2) array, got shape {pairs.shape}")
@@ -302,8 +305,9 @@ def pair_correct(
         raise ValueError(
             f"pairs index trajectories 0..{bank.num_trajectories - 1}, got {pairs.min()}..{pairs.max()}"
         )
-    if not (np.isfinite(lead) and lead >= 0):
-        raise ValueError(f"lead must be a non-negative number of seconds, got {lead}")
+    leads = np.asarray(lead, np.float64)
+    if leads.ndim > 1 or leads.size == 0 or not np.all(np.isfinite(leads) & (leads >= 0)):
+        raise ValueError(f"lead must be a non-negative number of seconds (or a list of them), got {lead}")
     request = np.asarray(bank.request_step)[pairs]
     if np.any(request[:, 0] == request[:, 1]):
         raise ValueError("a pair whose users request on the same step has no first requester")
@@ -338,7 +342,7 @@ def pair_correct(
         return u_w
 
     first = request.min(axis=1)
-    at = first - round(lead * CONTROL_HZ) - 1
+    at = first - np.round(leads[..., None] * CONTROL_HZ).astype(np.int64) - 1
     u_w = np.asarray(run(jnp.asarray(pairs)))[np.maximum(at, 0), np.arange(len(pairs))]
     sign = np.where(request[:, 0] < request[:, 1], -1.0, 1.0)
     return (at >= 0) & (np.sign(u_w) == sign)

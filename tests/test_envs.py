@@ -518,6 +518,9 @@ def test_pair_accuracy_follows_u_w_from_the_trajectories_beginning_to_the_first_
         want_early.append(first > 20 and np.sign(u_w[-21]) == sign)  # 0.4 s: 20 steps earlier
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(early, want_early)
+    np.testing.assert_array_equal(
+        guide_lib.pair_correct(policy, bank, pairs, lead=(0.0, 0.4)), [want, want_early]
+    )
     assert early.sum() < got.sum()  # the still-user rule is right more often at the request
     always_second = guide_lib.pair_accuracy(lambda obs: jnp.ones(1), bank, pairs)
     assert always_second == (np.mean(request[pairs[:, 1]] < request[pairs[:, 0]]), len(pairs))
@@ -530,6 +533,10 @@ def test_pair_accuracy_follows_u_w_from_the_trajectories_beginning_to_the_first_
             guide_lib.pair_correct(policy, bank, bad)
     with pytest.raises(ValueError, match="lead must be"):
         guide_lib.pair_correct(policy, bank, pairs, lead=-1.0)
+    with pytest.raises(ValueError, match="lead must be"):
+        guide_lib.pair_correct(policy, bank, pairs, lead=(0.0, float("nan")))
+    with pytest.raises(ValueError, match="one lead"):
+        guide_lib.pair_accuracy(policy, bank, pairs, lead=(0.0, 0.4))
 
 
 def test_standing_pairs_are_those_whose_other_user_stands_at_the_request(bank):

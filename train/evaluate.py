@@ -281,9 +281,13 @@ def guide_accuracy(run: str | Path, bank) -> dict:
     policy = load_guide(run)
     if len(guide_env.held_out_pairs(bank)) == 0:
         raise ConfigError("GuideRL's accuracy needs two trajectories whose requests differ")
-    accuracy, pairs = guide_env.pair_accuracy(policy, bank)
-    early, _ = guide_env.pair_accuracy(policy, bank, lead=EARLY)
-    return {"accuracy": accuracy, "pairs": pairs, "accuracy_early": early, "early_s": EARLY}
+    at, early = guide_env.pair_correct(policy, bank, lead=(0.0, EARLY))
+    return {
+        "accuracy": float(at.mean()),
+        "pairs": len(at),
+        "accuracy_early": float(early.mean()),
+        "early_s": EARLY,
+    }
 
 
 EARLY = 1.0
