@@ -32,8 +32,8 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            not work: ``docs/results.md`` and the card.
 ``nav_cpu`` NavRL for a 2-core CPU: ``su_cpu``'s floors, rays, body and departures with two
            users (Table 4.3's weights, ``su_cpu``'s scaling), the goal from the shipped GuideRL
-           policy (``assets/pretrained/guide``; the shipped NavRL policy trained with the previous,
-           15-input one of commit ebffd4d), started from the shipped SU policy
+           policy (``assets/pretrained/guide``; the shipped NavRL policy's first two stages
+           trained with the previous, 15-input one of commit ebffd4d), started from the shipped SU policy
            (``assets/pretrained/su``; the shipped NavRL policy started from its third stage, as
            shipped at commit a0e9d93; the second user's inputs start at zero weight; its critic,
            which an exported policy lacks, fitted alone for 20 iterations first), users visible
@@ -45,20 +45,21 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            learning rate of 5e-5 (the start is a trained policy), 79,360 timesteps (20.3M
            transitions, ~40 min). The shipped NavRL policy is this preset and a second stage
            from it with p_s (``env.weights.stopping=-100``, a 10 cm collision margin, the lab
-           twin in half the episodes, 35 min; 75 min in all); commands, figures and what did not
-           work: ``docs/results.md`` and the card.
+           twin in half the episodes, 35 min) and a third with the same settings and the shipped
+           wrist-reading GuideRL as the goal source (35 min; 110 min in all); commands, figures
+           and what did not work: ``docs/results.md`` and the card.
 ``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
 ``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
 ``guide_cpu`` GuideRL for a 2-core CPU: ``guide`` with 1,024 environments for 48,000 timesteps
            (49M transitions, ~16 min). The shipped GuideRL policy (``assets/pretrained/guide``) is
-           this and a second stage of 700 iterations (~11 min) from it (``init_from=``) that adds
+           this and a second stage of 900 iterations (~13 min) from it (``init_from=``) that adds
            each user's wrist height to the state (``env.wrist=true``, 17 inputs: eq. 4.24's cannot
            tell who asks when both users stand still, the raised arm can; the wrists start at zero
            weight), restarts the action noise (``noise_restart=true``), draws half its episodes
            from the pairs in which both users stand at the request (``env.hard_fraction=0.5``) and
-           pays the choice once more at the request (``env.weights.request=1000``: the arm rises
+           pays the choice once more at the request (``env.weights.request=3000``: the arm rises
            in the last second and u_w turns at most 0.05 a step, so the policy must turn at once):
-           98.8% of the held-out pairs at the request, the first stage 95.6%. Commands: the card.
+           99.1% of the held-out pairs at the request, the first stage 95.6%. Commands: the card.
 ``nav``    NavRL with two users: 2,048 environments, 960,000 timesteps; the goal comes from the
            GuideRL policy of ``guide_run=RUN_DIR`` or, without one, from the scripted source.
 =========  =====================================================================================
