@@ -104,6 +104,13 @@ def test_the_anchor_penalty_is_the_kl_from_the_start_policy():
     # KL(N(m1, s1) || N(m2, s2)) per dimension, the general formula at s1 = s2
     kl = np.log(s / s) + (s**2 + (anchor - mean) ** 2) / (2 * s**2) - 0.5
     np.testing.assert_allclose(ppo.anchor_penalty(mean, log_std, anchor), kl.sum(-1).mean(), rtol=1e-5)
+    # it pulls the mean back (the gradient of the KL at s1 = s2) and leaves the std alone: through
+    # the std, widening the policy would shrink the penalty
+    d_mean, d_log_std = jax.grad(ppo.anchor_penalty, argnums=(0, 1))(
+        jnp.asarray(mean), jnp.asarray(log_std), jnp.asarray(anchor)
+    )
+    np.testing.assert_allclose(d_mean, (mean - anchor) / s**2 / B, rtol=1e-4, atol=1e-7)
+    np.testing.assert_array_equal(d_log_std, 0.0)
 
     params = {"W": jnp.asarray(rng.normal(size=(3, A)))}
 

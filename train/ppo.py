@@ -181,8 +181,9 @@ def gae(rewards, values, dones, last_value, gamma: float, lam: float):
 def anchor_penalty(mean: jax.Array, log_std: jax.Array, anchor_mean: jax.Array) -> jax.Array:
     """KL(N(anchor_mean, std) || N(mean, std)), summed over action dimensions and averaged over the
     batch: the pull of :attr:`PPOConfig.anchor_scale` toward the start policy's actions. Only the
-    mean is held; the std stays PPO's to shape."""
-    z = (mean - anchor_mean) * jnp.exp(-log_std)
+    mean is held; the std stays PPO's to shape, so no gradient reaches it from here (through the
+    std, widening the policy would be a way to shrink the penalty without coming back)."""
+    z = (mean - anchor_mean) * jnp.exp(-jax.lax.stop_gradient(log_std))
     return jnp.mean(jnp.sum(0.5 * z**2, axis=-1))
 
 
