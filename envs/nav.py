@@ -229,14 +229,22 @@ def observation_layout(num_users: int, num_rays: int = lidar.NUM_RAYS) -> dict[s
     return out
 
 
-def load_bank(source: str, split: str, hip: HipConfig) -> MotionBank:
-    """The trajectories an environment replays, packed for the device (host side, once)."""
+def load_bank(source: str, split: str, hip: HipConfig, *, require_split: bool = False) -> MotionBank:
+    """The trajectories an environment replays, packed for the device (host side, once).
+
+    A set of at most ``motion.dataset.TEST_SIZE`` trajectories has no train/test split and is
+    replayed whole for either; ``require_split`` refuses that instead (:class:`MotionDataError`)."""
     if source == "default":
         trajs = motion.default_dataset()
     elif source == "sample":
         trajs = motion.sample()
     else:
         trajs = motion.load(source)
+    if require_split and split != "all" and len(trajs) <= motion.dataset.TEST_SIZE:
+        raise motion.MotionDataError(
+            f"{source}: {len(trajs)} trajectories have no {split} split (it takes more than "
+            f"{motion.dataset.TEST_SIZE}: the last {motion.dataset.TEST_SIZE} are the test ones)"
+        )
     if split != "all" and len(trajs) > motion.dataset.TEST_SIZE:
         train, test = motion.split(trajs)
         trajs = train if split == "train" else test

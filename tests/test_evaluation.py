@@ -664,6 +664,7 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys, full):
         (["--su", "/nonexistent"], "no exported policy"),
         (["--mu", "/nonexistent", "--no-mu"], "contradict"),
         (["--guide", "/nonexistent", "--no-mu"], "no exported policy"),
+        (["--split", "train"], "4 trajectories have no train split"),
     ],
 )
 def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
@@ -673,3 +674,17 @@ def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
     err = capsys.readouterr().err
     assert code == 2
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_split_train_is_the_other_trajectories():
+    """``--split train`` replays the default set's 342 training trajectories, none of the 100 test ones."""
+    from methd_jax.motion.features import HipConfig
+    from train import evaluate
+
+    train = evaluate.load_bank("default", "train", HipConfig(), require_split=True)
+    test = evaluate.load_bank("default", "test", HipConfig(), require_split=True)
+    assert (train.num_trajectories, test.num_trajectories) == (342, 100)
+    starts = np.asarray(train.pose[:, 0]), np.asarray(test.pose[:, 0])  # no test trajectory among them
+    assert not np.any(np.all(np.isclose(starts[0][:, None], starts[1][None]), -1))
+    meta = {"trajectories": 342, "split": "train", "motion": "default", "floor": "lab", "mu_offset": 50}
+    assert evaluate._meta_text({**meta, "seed": 0, "date": "d"}).startswith("342 train trajectories")

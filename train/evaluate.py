@@ -235,7 +235,7 @@ def write_report(results: dict, out: Path, meta: dict) -> tuple[str, dict]:
     if "procedural" in meta:
         text += [_procedural_text(meta["procedural"]), ""]
     if "guide" in meta:
-        text += [_guide_text(meta["guide"]), ""]
+        text += [_guide_text(meta["guide"], meta.get("split", "test")), ""]
     if stats_text:
         text += ["## Statistics", "", "```", stats_text, "```", ""]
     text += ["Figures: " + ", ".join(f"[{p.name}]({p.name})" for p in figures), ""]
@@ -294,19 +294,20 @@ EARLY = 1.0
 """s before the request at which GuideRL's accuracy is also reported."""
 
 
-def _guide_text(g: dict) -> str:
+def _guide_text(g: dict, split: str = "test") -> str:
     early = ""
     if "accuracy_early" in g:
         early = f", {g['early_s']:g} s before it in {100 * g['accuracy_early']:.1f}%"
     return (
         f"GuideRL: the requesting user named at the request in {100 * g['accuracy']:.1f}% of "
-        f"{g['pairs']} ordered pairs of the test trajectories (thesis: 99%){early}"
+        f"{g['pairs']} ordered pairs of the {split} trajectories (thesis: 99%){early}"
     )
 
 
 def _meta_text(meta: dict) -> str:
     return (
-        f"{meta['trajectories']} test trajectories from `{meta['motion']}` on floor `{meta['floor']}`; "
+        f"{meta['trajectories']} {meta.get('split', 'test')} trajectories from `{meta['motion']}` on floor "
+        f"`{meta['floor']}`; "
         f"MU pairs offset by {meta['mu_offset']}; seed {meta['seed']}; {meta['date']}."
     )
 
@@ -332,9 +333,16 @@ def main(argv=None) -> int:
         help="trajectories: default (its 100 test ones), sample, or a folder of MCAP bags",
     )
     parser.add_argument(
+        "--split",
+        choices=("test", "train"),
+        default="test",
+        help="which trajectories of a set of more than 100: the held-out test ones (Table 5.1) or the "
+        "training ones (to choose between checkpoints without looking at the test set)",
+    )
+    parser.add_argument(
         "--floor", default="lab", help="lab (the lab twin) or a floor JSON in the lab's format"
     )
-    parser.add_argument("--trajectories", type=int, help="use only the first N test trajectories")
+    parser.add_argument("--trajectories", type=int, help="use only the first N trajectories of the split")
     parser.add_argument(
         "--mu-offset", type=int, default=50, help="user 2's trajectory index offset (default 50)"
     )
@@ -371,7 +379,7 @@ def main(argv=None) -> int:
             floor = floors.lab() if args.floor == "lab" else floors.lab(args.floor)
         except floors.FloorSpecError as err:
             raise ConfigError(str(err)) from None
-        bank = load_bank(args.motion, "test", HipConfig())
+        bank = load_bank(args.motion, args.split, HipConfig(), require_split=args.split != "test")
         if args.trajectories is not None:
             bank = bank.take(range(min(args.trajectories, bank.num_trajectories)))
         su = {"Static": methods.Static()}
@@ -402,6 +410,7 @@ def main(argv=None) -> int:
         out = args.out or Path("runs") / f"eval-{time.strftime('%Y%m%d-%H%M%S')}"
         meta = {
             "motion": args.motion,
+            "split": args.split,
             "floor": args.floor,
             "trajectories": bank.num_trajectories,
             "mu_offset": offset,
@@ -427,7 +436,7 @@ def main(argv=None) -> int:
     if "procedural" in meta:
         print(_procedural_text(meta["procedural"]))
     if "guide" in meta:
-        print(_guide_text(meta["guide"]))
+        print(_guide_text(meta["guide"], meta["split"]))
     text = _stats_text(st)
     if text:
         print(text)
