@@ -341,7 +341,9 @@ def train(
     # a start that fails here (a warm start that does not fit) leaves no run folder behind
     if config.init_from and not resume:
         state = _warm_start(state, Path(config.init_from), setup)
-        log(f"started from the newest checkpoint of {config.init_from}")
+        source = Path(config.init_from)
+        what = "the exported policy" if (source / "manifest.json").is_file() else "the newest checkpoint of"
+        log(f"started from {what} {source}")
         if config.ppo.anchor_scale:
             state = _anchored(state)
         if config.critic_warmup:
