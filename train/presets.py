@@ -19,14 +19,17 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            (``env.safety.collision_margin``: without it corners graze furniture between two
            rays, which the evaluation's 720 rays count), no entropy bonus and an initial log-std
            of -0.5 (with skrl's 0.005 and 0 the std grew to ~1.3 and stayed there). The
-           shipped policy (``assets/pretrained/su``) is four stages of it: 2,200 iterations with
+           shipped policy (``assets/pretrained/su``) is five stages of it: 2,200 iterations with
            ``env.safety.collision_margin=0``, then 1,119 from that checkpoint (``init_from=``),
            then 408 with a 10 cm margin and the lab twin in half the episodes (fewer grazed
            corners on the lab's furniture, which the evaluation counts), then 2,616 more from
            that policy with p_s, the penalty on the base's stopping path
            (``env.weights.stopping=-100``: Table 4.1's obstacle terms see only where the base is,
-           and its contacts come at speed), the critic fitted first and a learning rate of 5e-5;
-           52M transitions, 155 min as measured on two machines. The same four stages run end
+           and its contacts come at speed), the critic fitted first and a learning rate of 5e-5,
+           then 1,716 more from that policy, its settings and the critical-zone penalty at -60 per step
+           (Table 4.1: -20; the fourth stage kept off furniture by letting walking users close in,
+           behind the safety layer 712 s within d_crit on the lab's 100 test trajectories, the
+           fifth 51 s); 66M transitions, 195 min as measured on three machines. The first four run end
            to end on one machine took 99 min and gave a policy that keeps its distance (T_pos
            3.2 s): the recipe's outcome varies from run to run. Commands, figures and what did
            not work: ``docs/results.md`` and the card.
@@ -260,7 +263,7 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
     "su_cpu": (
         "SU for the 2-core CPU: procedural floors with obstacles and the lab twin (30%), the 342 "
         "training trajectories, 90 rays, a 3 x 256 body, the goal kept clear of obstacles; the "
-        "shipped policy's recipe (four stages, the last with env.weights.stopping: docs/results.md)",
+        "shipped policy's recipe (five stages, the last two with env.weights.stopping: docs/results.md)",
         _SU_CPU,
     ),
     "guide_cpu": (
@@ -271,8 +274,8 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
     ),
     "nav_cpu": (
         "NavRL for the 2-core CPU: su_cpu's floors and departures with two users, the goal from the "
-        "shipped GuideRL policy, started from the shipped SU policy; the shipped policy's recipe (two "
-        "stages, the second with env.weights.stopping: docs/results.md)",
+        "shipped GuideRL policy, started from the shipped SU policy; the shipped policy's recipe (three "
+        "stages, the last two with env.weights.stopping: docs/results.md)",
         _NAV_CPU,
     ),
     "su": ("single-user policy, Table 4.4 (2,048 envs, 960k timesteps)", RunConfig()),
