@@ -85,3 +85,12 @@ def test_named_fields_restore_whatever_the_rest_of_the_state_holds(tmp_path):
         store.restore_fields(like.replace(stats=jnp.zeros(3)), ("stats",))
     with pytest.raises(KeyError, match="has no 'missing'"):
         store.restore_fields(like, ("missing",))
+
+
+@pytest.mark.parametrize(("keep", "kept"), [(3, [3, 4, 5]), (None, [1, 2, 3, 4, 5])])
+def test_the_newest_keep_are_kept_or_every_one(tmp_path, keep, kept):
+    store = ckpt.Checkpoints(tmp_path, keep=keep)
+    for step in range(1, 6):
+        store.save(step, _state())
+    assert store.steps() == kept and store.latest() == 5
+    store.close()

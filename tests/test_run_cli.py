@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 from conftest import TINY_RUN
@@ -42,6 +43,7 @@ def test_help_lists_presets_and_options():
         (["su", "env.floor.room_size=13"], "env.floor.room_size expects 2 comma-separated values"),
         (["walk"], "unknown preset 'walk'"),
         (["su", "guide_run=runs/x"], "guide_run applies to env_name=nav only"),
+        (["su", "checkpoint_keep=-1"], "checkpoint_keep must be >= 0 (0: every one), got -1"),
         (["su", "--bogus"], "unrecognized arguments: --bogus"),
     ],
 )
@@ -102,6 +104,35 @@ def test_a_small_run_writes_everything_a_user_needs(small_run, capsys):
     assert main(["quick", *TINY, "--out", str(run), "--quiet"]) == 2
     assert "--resume" in capsys.readouterr().err
     assert sorted(p.name for p in run.rglob("*")) == before
+
+
+def test_a_checkpoint_exports_as_a_deployment_folder(small_run, tmp_path, capsys):
+    from methd_jax import deploy
+
+    final = export.load(small_run)  # the run's own export of its last checkpoint, iteration 2
+    first = export.export_deployment(small_run, tmp_path / "d1", iteration=1, log=lambda *a: None)
+    last = export.export_deployment(small_run, tmp_path / "d2", iteration=2, log=lambda *a: None)
+    same = lambda a, b: all(  # noqa: E731
+        np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    )
+    two, one = export.load(last), export.load(first)
+    assert same(two.params, final.params) and np.array_equal(two.obs_mean, final.obs_mean)
+    assert not same(one.params, final.params)  # one PPO update apart
+    assert one.manifest["trained"]["iteration"] == 1 and two.manifest["trained"]["iteration"] == 2
+    assert json.loads((first / "manifest.json").read_text())["run_config"]["preset"] == "quick"
+    obs = np.random.default_rng(0).normal(size=(4, 97)).astype(np.float32)
+    controller = deploy.Controller(first, backend="numpy")
+    assert np.allclose(controller.policy(obs), np.asarray(one(obs)), atol=1e-5)
+    # a missing iteration names the ones there; a policy folder has no checkpoints
+    for argv, message in (
+        ([str(small_run), "--iteration", "7"], "has no checkpoint at iteration 7 (it has: 1, 2;"),
+        ([str(small_run / "policy"), "--iteration", "1"], "--iteration takes a run folder"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            export.main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and message in err and err.strip().count("\n") == 0, err
+    assert not list(small_run.glob(".checkpoint-*")) and not (small_run / "deploy-7").exists()
 
 
 def test_resume_falls_back_past_a_damaged_checkpoint(small_run, tmp_path, capsys):

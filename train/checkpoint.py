@@ -70,9 +70,10 @@ class CheckpointError(ValueError):
 
 
 class Checkpoints:
-    """Numbered checkpoints (by iteration) under ``directory``; the newest ``keep`` are kept."""
+    """Numbered checkpoints (by iteration) under ``directory``; the newest ``keep`` are kept (None:
+    every one)."""
 
-    def __init__(self, directory: str | Path, keep: int = 3):
+    def __init__(self, directory: str | Path, keep: int | None = 3):
         self.directory = Path(directory).absolute()
         self._manager = ocp.CheckpointManager(
             self.directory,
@@ -86,6 +87,10 @@ class Checkpoints:
 
     def latest(self) -> int | None:
         return self._manager.latest_step()
+
+    def steps(self) -> list[int]:
+        """The iterations of the checkpoints there, oldest first."""
+        return sorted(self._manager.all_steps())
 
     def restore(self, like, step: int | None = None):
         """The checkpoint ``step`` (default: the newest) in the structure and shardings of ``like``."""

@@ -42,6 +42,7 @@ from methd_jax.control import CONTROL_HZ
 from methd_jax.deploy.policy import params_sha256
 from methd_jax.geometry import KAIROS
 from methd_jax.jsonable import jsonable
+from train.presets import ConfigError
 
 FORMAT = "methd-jax-policy/1"
 
@@ -287,11 +288,30 @@ def to_onnx(policy_dir: str | Path, path: str | Path) -> Path:
     return path
 
 
-def export_deployment(source: str | Path, out: str | Path | None = None, *, log=print) -> Path:
-    """The deployment folder for the run or policy folder ``source`` (default ``<run>/deploy``)."""
+def export_deployment(
+    source: str | Path, out: str | Path | None = None, *, iteration: int | None = None, log=print
+) -> Path:
+    """The deployment folder for the run or policy folder ``source`` (default ``<run>/deploy``); with
+    ``iteration``, for that checkpoint of the run folder ``source`` (default ``<run>/deploy-<N>``)."""
     source = Path(source)
     if not source.exists():
         raise ExportError(f"{source}: no such run or policy folder")
+    if iteration is None:
+        return _deploy(source, out, log)
+    if not (source / "config.json").is_file():
+        raise ExportError(f"--iteration takes a run folder; {source} has no config.json")
+    from train import run as run_lib  # train.run imports this module
+
+    with tempfile.TemporaryDirectory(prefix=".checkpoint-", dir=source) as tmp:
+        try:
+            run_lib.export_checkpoint(source, iteration, Path(tmp) / "policy")
+        except (ConfigError, FileNotFoundError) as e:
+            raise ExportError(str(e)) from None
+        shutil.copyfile(source / "config.json", Path(tmp) / "config.json")
+        return _deploy(Path(tmp), out if out is not None else source / f"deploy-{iteration}", log)
+
+
+def _deploy(source: Path, out: str | Path | None, log) -> Path:
     policy_dir = source / "policy" if (source / "policy" / "manifest.json").exists() else source
     try:
         policy = load(policy_dir)
@@ -357,10 +377,18 @@ def main(argv=None) -> int:
         "that methd_jax.deploy.Controller loads with numpy and onnxruntime only.",
     )
     parser.add_argument("source", help="a run folder (runs/<name>) or its policy/ folder")
-    parser.add_argument("--out", help="deployment folder to write (default: <run>/deploy)")
+    parser.add_argument(
+        "--out", help="deployment folder to write (default: <run>/deploy, with --iteration <run>/deploy-<N>)"
+    )
+    parser.add_argument(
+        "--iteration",
+        type=int,
+        metavar="N",
+        help="export the run's checkpoint at iteration N instead of its final policy",
+    )
     args = parser.parse_args(argv)
     try:
-        export_deployment(args.source, args.out)
+        export_deployment(args.source, args.out, iteration=args.iteration)
     except ExportError as e:
         parser.exit(2, f"{parser.prog}: error: {e}\n")
     return 0

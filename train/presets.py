@@ -122,6 +122,9 @@ class RunConfig:
     (``nav``; empty: scripted)."""
     checkpoint_every: int = 50
     """Iterations between checkpoints (one is always written at the end)."""
+    checkpoint_keep: int = 3
+    """Checkpoints kept, the newest (0: every one, to choose between them afterwards:
+    ``python -m train.export RUN --iteration N``)."""
     init_from: str = ""
     """Start from a run folder's newest checkpoint (parameters, optimiser, observation and value
     statistics; same network, observation size and num_envs; floors, rewards and PPO settings may
@@ -146,6 +149,8 @@ class RunConfig:
         for name in ("num_envs", "timesteps", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.checkpoint_keep < 0:
+            raise ConfigError(f"checkpoint_keep must be >= 0 (0: every one), got {self.checkpoint_keep}")
         if self.ppo.anchor_scale and not self.init_from:
             raise ConfigError("ppo.anchor_scale needs init_from (the policy it anchors to)")
         if self.noise_restart and not self.init_from:

@@ -359,7 +359,7 @@ def train(
     run_dir.mkdir(parents=True, exist_ok=True)
     if primary:
         (run_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
-    ckpts = Checkpoints(run_dir / "checkpoints")
+    ckpts = Checkpoints(run_dir / "checkpoints", keep=config.checkpoint_keep or None)
     if resume:
         if config.ppo.anchor_scale:  # the checkpoint holds the anchor; this gives it its shape
             state = _anchored(state)
@@ -507,6 +507,48 @@ def _help_epilog() -> str:
         lines.append(f"  {name}={shown}" + (f"  -- {doc}" if doc else ""))
     lines += ["", "example: python -m train.run su num_envs=1024 ppo.learning_rate=3e-4 env.lab=true"]
     return "\n".join(lines)
+
+
+def export_checkpoint(run_dir: str | Path, iteration: int, out: str | Path) -> Path:
+    """The policy of the checkpoint at ``iteration`` of the run in ``run_dir`` exported to the
+    policy folder ``out``, as the run exports its last one to ``policy/``. :class:`ConfigError`
+    names the iterations there when ``iteration`` is not one of them."""
+    run_dir = Path(run_dir)
+    _, _, config = load_config(run_dir)
+    if not (run_dir / "checkpoints").is_dir():
+        raise ConfigError(f"{run_dir} has no checkpoints folder")
+    ckpts = Checkpoints(run_dir / "checkpoints")
+    try:
+        steps = ckpts.steps()
+        if iteration not in steps:
+            have = ", ".join(map(str, steps)) or "none"
+            raise ConfigError(
+                f"{run_dir} has no checkpoint at iteration {iteration} (it has: {have}; a run keeps "
+                "every one with checkpoint_keep=0)"
+            )
+        setup = build(config)
+        state = jax.jit(setup.trainer.init)(jax.random.key(config.seed))
+        try:
+            learned = ckpts.restore_fields(state, ("params", "obs_stats"), iteration)
+        except (ValueError, KeyError, TypeError) as err:
+            raise ConfigError(f"{run_dir}: checkpoint {iteration} does not restore ({err})") from None
+    finally:
+        ckpts.close()
+    return export.export(
+        out,
+        env_name=config.env_name,
+        env=setup.env,
+        network_spec=setup.network_spec,
+        params=learned["params"],
+        obs_stats=learned["obs_stats"],
+        obs_clip=config.ppo.obs_clip,
+        policies=dependencies(config),
+        trained={
+            "run": str(run_dir),
+            "iteration": iteration,
+            "transitions": iteration * setup.trainer.transitions_per_iteration,
+        },
+    )
 
 
 def load_config(run_dir: str | Path) -> tuple[str, list[str], RunConfig]:
