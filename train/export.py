@@ -308,10 +308,11 @@ def export_deployment(
         except (ConfigError, FileNotFoundError) as e:
             raise ExportError(str(e)) from None
         shutil.copyfile(source / "config.json", Path(tmp) / "config.json")
-        return _deploy(Path(tmp), out if out is not None else source / f"deploy-{iteration}", log)
+        out = out if out is not None else source / f"deploy-{iteration}"
+        return _deploy(Path(tmp), out, log, f"checkpoint {iteration} of {source}")
 
 
-def _deploy(source: Path, out: str | Path | None, log) -> Path:
+def _deploy(source: Path, out: str | Path | None, log, what: str | None = None) -> Path:
     policy_dir = source / "policy" if (source / "policy" / "manifest.json").exists() else source
     try:
         policy = load(policy_dir)
@@ -337,7 +338,7 @@ def _deploy(source: Path, out: str | Path | None, log) -> Path:
     tmp.chmod(0o755)  # mkdtemp's 0700 would make the deployment folder private
     try:
         shutil.copyfile(policy_dir / "params.npz", tmp / "params.npz")
-        log(f"exporting {policy.manifest['env']} policy from {policy_dir} to ONNX ...")
+        log(f"exporting {policy.manifest['env']} policy from {what or policy_dir} to ONNX ...")
         to_onnx(policy_dir, tmp / "policy.onnx")
         manifest = dict(policy.manifest)
         manifest.update(
