@@ -442,21 +442,7 @@ def train(
     meta["wall_s"] = time.perf_counter() - t_begin
     meta["transitions_per_s"] = timed * per / timed_s if timed else per * max(1, end - start) / meta["wall_s"]
     if primary:
-        export.export(
-            run_dir / "policy",
-            env_name=config.env_name,
-            env=setup.env,
-            network_spec=setup.network_spec,
-            params=state.params,
-            obs_stats=state.obs_stats,
-            obs_clip=config.ppo.obs_clip,
-            policies=dependencies(config),
-            trained={
-                "run": str(run_dir),
-                "iteration": meta["iteration"],
-                "transitions": meta["iteration"] * per,
-            },
-        )
+        _export(setup, run_dir / "policy", state.params, state.obs_stats, run_dir, meta["iteration"])
         _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}", trainer.ratios)
         _write_readme(run_dir, setup, meta, rows)
     distributed.barrier("run folder written")
@@ -534,13 +520,19 @@ def export_checkpoint(run_dir: str | Path, iteration: int, out: str | Path) -> P
             raise ConfigError(f"{run_dir}: checkpoint {iteration} does not restore ({err})") from None
     finally:
         ckpts.close()
+    return _export(setup, out, learned["params"], learned["obs_stats"], run_dir, iteration)
+
+
+def _export(setup: Setup, out: Path, params, obs_stats, run_dir: Path, iteration: int) -> Path:
+    """The policy ``params`` + ``obs_stats`` of ``run_dir`` at ``iteration`` as the policy folder ``out``."""
+    config = setup.config
     return export.export(
         out,
         env_name=config.env_name,
         env=setup.env,
         network_spec=setup.network_spec,
-        params=learned["params"],
-        obs_stats=learned["obs_stats"],
+        params=params,
+        obs_stats=obs_stats,
         obs_clip=config.ppo.obs_clip,
         policies=dependencies(config),
         trained={
