@@ -663,6 +663,9 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys, full):
         (["--floor", "/nonexistent.json"], "not found"),
         (["--su", "/nonexistent"], "no exported policy"),
         (["--mu", "/nonexistent", "--no-mu"], "contradict"),
+        (["--su", "/nonexistent", "--no-su"], "contradict"),
+        (["--no-su", "--no-mu"], "leave nothing to evaluate"),
+        (["--no-su", "--procedural", "2"], "--procedural needs a single-user policy"),
         (["--guide", "/nonexistent", "--no-mu"], "no exported policy"),
         (["--split", "train"], "4 trajectories have no train split"),
     ],
@@ -674,6 +677,32 @@ def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
     err = capsys.readouterr().err
     assert code == 2
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_cli_no_su_runs_the_multi_user_rows_alone(monkeypatch, tmp_path):
+    """``--no-su`` (screening NavRL checkpoints) hands the engine no single-user row, not even the
+    baselines, and the shipped SU policy is not loaded."""
+    from train import evaluate
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_evaluate(su, mu, bank, floor, **kwargs):
+        seen.update(su=sorted(su), mu=sorted(mu))
+        raise Stop
+
+    loaded = []
+    monkeypatch.setattr(evaluate, "evaluate", fake_evaluate)
+    monkeypatch.setattr(evaluate, "load_policy", lambda run, bank, kind, *a, **k: loaded.append(kind))
+    with pytest.raises(Stop):
+        evaluate.main(["--motion", "sample", "--no-su", "--quiet", "--out", str(tmp_path / "x")])
+    assert seen["su"] == [] and "Static" in seen["mu"]
+    assert "su" not in loaded
+    with pytest.raises(Stop):  # without it the SU baselines are there
+        evaluate.main(["--motion", "sample", "--no-mu", "--no-pretrained", "--quiet", "--out", str(tmp_path)])
+    assert seen["su"] == ["Heuristic", "Static"] and seen["mu"] == []
 
 
 def test_split_train_is_the_other_trajectories():

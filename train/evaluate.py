@@ -346,6 +346,7 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--mu-offset", type=int, default=50, help="user 2's trajectory index offset (default 50)"
     )
+    parser.add_argument("--no-su", action="store_true", help="skip the single-user scenario")
     parser.add_argument("--no-mu", action="store_true", help="skip the multi-user scenario")
     parser.add_argument("--no-heuristic", action="store_true", help="skip the Heuristic baseline")
     parser.add_argument(
@@ -373,6 +374,10 @@ def main(argv=None) -> int:
             raise ConfigError(f"--procedural must be >= 0, got {args.procedural}")
         if args.trajectories is not None and args.trajectories < 1:
             raise ConfigError(f"--trajectories must be at least 1, got {args.trajectories}")
+        if args.su and args.no_su:
+            raise ConfigError("--su and --no-su contradict each other")
+        if args.no_su and args.no_mu:
+            raise ConfigError("--no-su and --no-mu leave nothing to evaluate")
         if args.motion not in ("default", "sample") and not Path(args.motion).is_dir():
             raise ConfigError(f"--motion {args.motion}: not 'default', 'sample' or a folder")
         try:
@@ -382,11 +387,13 @@ def main(argv=None) -> int:
         bank = load_bank(args.motion, args.split, HipConfig(), require_split=args.split != "test")
         if args.trajectories is not None:
             bank = bank.take(range(min(args.trajectories, bank.num_trajectories)))
-        su = {"Static": methods.Static()}
-        if not args.no_heuristic:
+        su = {} if args.no_su else {"Static": methods.Static()}
+        if not (args.no_heuristic or args.no_su):
             su["Heuristic"] = methods.Heuristic()
         mu = {} if args.no_mu else {"Static": methods.Static()}
-        su_run = args.su or (None if args.no_pretrained else shipped("su"))
+        su_run = args.su or (None if args.no_pretrained or args.no_su else shipped("su"))
+        if args.procedural and not su_run:  # refused before the long evaluation, not after it
+            raise ConfigError("--procedural needs a single-user policy (--su RUN or the shipped one)")
         if su_run:
             su["DRL"] = load_policy(su_run, bank, "su")
             if not args.no_safety:
@@ -424,8 +431,6 @@ def main(argv=None) -> int:
         if guide:
             meta["guide"] = guide_accuracy(guide, bank)
         if args.procedural:
-            if not su_run:
-                raise ConfigError("--procedural needs a single-user policy (--su RUN or the shipped one)")
             meta["procedural"] = procedural(su_run, args.procedural, seed=args.seed + 1)
     except (ConfigError, FileNotFoundError, MotionDataError) as err:
         print(f"python -m train.evaluate: error: {err}", file=sys.stderr)
