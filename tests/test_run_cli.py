@@ -253,7 +253,7 @@ def _random_guide_run(folder):
     return export_random_policy(folder, env, "guide", networks.GuideActorCritic(hidden=(16, 16)), seed=2)
 
 
-def test_guide_run_is_the_nav_runs_goal_source(tmp_path):
+def test_guide_run_is_the_nav_runs_goal_source(tmp_path, monkeypatch):
     """What ``guide_run=`` does without training (the slow test below trains with it): the NavRL
     environment steers its goal with that GuideRL policy; a policy of another kind is refused."""
     from train import run as run_lib
@@ -263,6 +263,13 @@ def test_guide_run_is_the_nav_runs_goal_source(tmp_path):
     obs = np.random.default_rng(0).normal(size=(4, 15)).astype(np.float32)
     np.testing.assert_array_equal(np.asarray(setup.env.guide_policy(obs)), np.asarray(policy(obs)))
     assert run_lib.build(apply_overrides(preset("nav"), TINY)).env.guide_policy is None  # scripted
+    # a folder named relative to where the run starts is kept absolute: config.json and the
+    # manifests of the run's policies (which name the GuideRL policy) are read from anywhere
+    monkeypatch.chdir(tmp_path)
+    relative = run_lib.build(apply_overrides(preset("nav"), [*TINY, "guide_run=guide", "init_from=x/policy"]))
+    assert relative.config.guide_run == str(tmp_path / "guide")
+    assert relative.config.init_from == str(tmp_path / "x" / "policy")
+    assert run_lib.dependencies(relative.config) == {"guide": str(tmp_path / "guide")}
     with pytest.raises(ConfigError, match="holds a 'su' policy, not a guide policy"):
         run_lib.build(apply_overrides(preset("nav"), [*TINY, f"guide_run={SU_POLICY}"]))
 
@@ -321,14 +328,18 @@ def test_guide_with_wrists_starts_from_a_policy_without_them(tmp_path):
 
 
 @pytest.mark.slow
-def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys):
+def test_nav_trains_with_a_guide_run_as_its_goal_source(tmp_path, capsys, monkeypatch):
     guide = tmp_path / "guide"
     _random_guide_run(guide)
     nav = tmp_path / "nav"
-    args = ["nav", *TINY, f"guide_run={guide}", "--out", str(nav), "--quiet"]
+    monkeypatch.chdir(tmp_path)  # the GuideRL folder named relative to here
+    args = ["nav", *TINY, "guide_run=guide", "--out", str(nav), "--quiet"]
     assert main(args) == 0
     manifest = export.load(nav).manifest
     assert manifest["env"] == "nav" and manifest["observation_size"] == 72 + 33
+    # which the exported policy's manifest records so that it is found from elsewhere
+    monkeypatch.chdir(tmp_path.parent)
+    assert export.dependencies(nav) == {"guide": str(guide)}
     # a policy of the wrong kind is refused with one line
     assert main(["nav", *TINY, f"guide_run={nav}", "--out", str(tmp_path / "x"), "--quiet"]) == 2
     err = capsys.readouterr().err

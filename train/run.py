@@ -59,6 +59,17 @@ def dependencies(config: RunConfig) -> dict[str, str]:
     return {name: getattr(config, field) for name, field in task.depends.items() if getattr(config, field)}
 
 
+def absolute_folders(config: RunConfig) -> RunConfig:
+    """``config`` with its folders (``init_from``, the policies its environment takes) made absolute.
+
+    They are read relative to the working directory, but the run folder's ``config.json`` and the
+    manifest of every policy it exports (which records the policies it was trained with) are read
+    from anywhere, and a relative folder there would name a different place or none."""
+    fields = ["init_from", *tasks.get(config.env_name).depends.values()]
+    changes = {f: str(Path(getattr(config, f)).resolve()) for f in fields if getattr(config, f)}
+    return dataclasses.replace(config, **changes)
+
+
 def load_dependencies(folders: dict[str, str], what: str) -> dict:
     """The policies in ``folders`` (task name -> folder), each checked to be of that task."""
     policies = {}
@@ -75,7 +86,9 @@ def load_dependencies(folders: dict[str, str], what: str) -> dict:
 
 
 def build(config: RunConfig, devices=None) -> Setup:
-    """The environment, network and trainer of ``config``."""
+    """The environment, network and trainer of ``config`` (kept in the setup with its folders
+    absolute: :func:`absolute_folders`)."""
+    config = absolute_folders(config)
     task = tasks.get(config.env_name)
     env = task.build(config.env, policies=load_dependencies(dependencies(config), "this run"))
     spec = network_spec(config)
@@ -321,7 +334,7 @@ def train(
     earlier_rows = _read_rows(run_dir / "metrics.jsonl") if resume else []  # checked before any write
     distributed.barrier("run folder checked")
     setup = build(config, devices)
-    trainer = setup.trainer
+    config, trainer = setup.config, setup.trainer
     processes = f" in {jax.process_count()} processes" if jax.process_count() > 1 else ""
     meta = {
         "preset": preset_name,
