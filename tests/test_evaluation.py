@@ -470,6 +470,43 @@ def test_a_contact_that_lasts_across_episodes_counts_once():
     assert res["collisions_user"].tolist() == [0.0, 0.0]
 
 
+class Drive:
+    """A method that commands one robot-frame velocity whatever it sees."""
+
+    name = "Drive"
+    multi_user = False
+
+    def __init__(self, command):
+        self.command = jnp.asarray(command, jnp.float32)
+
+    def init(self):
+        return ()
+
+    def chase(self, state, ctx):
+        return state, M.Chase(self.command, jnp.zeros(3), jnp.bool_(False))
+
+
+def test_walls_are_solid_and_a_base_in_contact_can_back_out():
+    # full speed at a wall 3 m ahead for 10 s: the base stops at it, stays in the room, and the
+    # push is one collision (the engine used to let it through, out of the room)
+    wall = open_floor(polygons=[[(-3.3, -3.0), (-3.0, -3.0), (-3.0, 3.0), (-3.3, 3.0)]])
+    traj = walk([(4.0, 4.0), (4.5, 4.0)], [1.0], request_at_end=False, hold=12.0)
+    cfg = E.EngineConfig(episode_limit=10.0)
+    res, rec = run(Drive([3.0, 0.0, 0.0]), [traj], wall, (0.0, 0.0, math.pi), steps=500, cfg=cfg)
+    half_length = 1.13 / 2
+    x = rec["pose"][:-1, 0]  # the last record is the next (here: no) episode's reset
+    assert x.min() > -3.0 + half_length - 1e-3  # never into the wall
+    assert x[-1] < -3.0 + half_length + 0.005  # but up against it
+    assert res["collisions_obstacle"][0] == 1.0
+    assert res["travelled"][0] < 3.0 - half_length + 0.005
+    assert rec["touching"][-100:-1, 0].all()  # still pushing, still in contact: one event
+    # a base that starts overlapping a post may leave it (only deeper is refused)
+    post = open_floor(circles=[(0.0, 0.0, 0.5)])
+    res, rec = run(Drive([1.0, 0.0, 0.0]), [traj], post, (1.0, 0.0, 0.0), steps=300, cfg=cfg)
+    assert rec["pose"][-2, 0] > 3.0
+    assert res["collisions_obstacle"][0] == 1.0
+
+
 def test_summary_and_table():
     r = {
         "request_time": np.array([1.0, 2.0, np.nan]),

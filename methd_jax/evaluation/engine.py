@@ -45,6 +45,7 @@ from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
 from methd_jax.motion.features import MotionBank
 
 CHASE, HAPTIC, ARM, ESCAPE, INFORM = range(5)
+CONTACT_RELEASE = 0.01  # m of clearance that ends a contact with an obstacle
 MODES = ("Chase", "Haptic", "Arm", "Escape", "Inform")
 
 
@@ -124,7 +125,7 @@ RESULT_FIELDS = (
     "served",  # 1 if the arm finished while the request was active
     "escapes",  # Escape activations
     "informs",  # Inform activations
-    "collisions_obstacle",  # times the footprint entered an obstacle
+    "collisions_obstacle",  # times the base ran into an obstacle (it stops at it)
     "collisions_user",  # times the footprint touched a user's body
     "travelled",  # m the base moved
     "critical_time",  # s some user was within d_crit of the robot's centre
@@ -331,6 +332,28 @@ class Engine:
     def _scan(self, pose: jax.Array) -> jax.Array:
         return lidar.scan(self.floor, pose, num_rays=self.cfg.collision_rays)
 
+    def _stop_at_contact(self, before: mjx.Data, after: mjx.Data, allowed: jax.Array):
+        """The base stopped at the last pose of its step from ``before`` to ``after`` (straight, by
+        bisection to 1/256 of the step) whose footprint overlaps obstacles by no more than
+        ``allowed``; returns it and the scan from there."""
+        q0, q1 = before.qpos[:3], after.qpos[:3]
+
+        def bisect(_, bounds):
+            lo, hi = bounds
+            mid = 0.5 * (lo + hi)
+            at = robot_lib.pose(before.replace(qpos=q0 + mid * (q1 - q0)))
+            ok = self._overlap(self._scan(at)) <= allowed
+            return jnp.where(ok, mid, lo), jnp.where(ok, hi, mid)
+
+        lo, _ = jax.lax.fori_loop(0, 8, bisect, (jnp.float32(0.0), jnp.float32(1.0)))
+        qpos = before.qpos.at[:3].set(q0 + lo * (q1 - q0))
+        stopped = before.replace(qpos=qpos, qvel=jnp.zeros_like(before.qvel))
+        return stopped, self._scan(robot_lib.pose(stopped))
+
+    def _overlap(self, ranges: jax.Array) -> jax.Array:
+        """How far, m, an obstacle reaches into the footprint along the worst ray (<= 0: clear)."""
+        return jnp.max(self._boundary - ranges)
+
     # -- one step --------------------------------------------------------------------------------
 
     def _users(self, s: EvalState, trajs: jax.Array) -> dict:
@@ -443,7 +466,17 @@ class Engine:
             lambda: command,
         )
         command = jnp.where(direct, order.command, command)
-        robot = self.robot.step(s.robot, command)
+        moved = self.robot.step(s.robot, command)
+        ranges = self._scan(robot_lib.pose(moved))
+        # walls and furniture are solid, as the thesis's simulator made them: a step that would
+        # take the footprint (deeper) into one does not happen and the base stops there, as at a
+        # bumper. Without this a base pushed through the lab's wall left the room and, carried
+        # over, failed every later single-user episode
+        allowed = jnp.maximum(self._overlap(s.scan), 0.0)
+        blocked = self._overlap(ranges) > allowed
+        robot, ranges = jax.lax.cond(
+            blocked, lambda: self._stop_at_contact(s.robot, moved, allowed), lambda: (moved, ranges)
+        )
         new_pose = robot_lib.pose(robot)
         # the navigator and the brake ramp from the command they gave last; after a method drove
         # the base itself they ramp from the base's own velocity: a policy's last command (a
@@ -455,8 +488,10 @@ class Engine:
         )
 
         # bookkeeping
-        ranges = self._scan(new_pose)
-        hit_obstacle = jnp.any(ranges < self._boundary)
+        # a contact lasts until the base is a centimetre clear: a base held at a wall is not a new
+        # collision each time it is pushed on
+        overlap = self._overlap(ranges)
+        hit_obstacle = blocked | (overlap > 0) | (s.touching[0] & (overlap > -CONTACT_RELEASE))
         body = footprint_distance(new_pose, users_xy)
         hit_user = jnp.any(present & (body < cfg.user_radius))
         res = _add(res, "collisions_obstacle", k, hit_obstacle & ~s.touching[0])
