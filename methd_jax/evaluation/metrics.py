@@ -5,9 +5,10 @@ base within the goal tolerance of the HIP (requests never reached have none and 
 distance to HIP is the straight-line distance from the base to the HIP at the request; total
 travelled sums the base's path over the whole run; a request is served when the arm finished while
 it was active; collisions count the times the base ran into an obstacle (walls and furniture are
-solid: it stops at them; a contact ends 1 cm clear) or the footprint touched a user's body; Escape activations count every entry into Escape. Beyond the thesis: the base's yaw error to
-the HIP at the request (the navigator turns the base after it), Inform activations, the time some
-user was within the critical distance, and the closest any user came.
+solid: it stops at them; a contact ends 1 cm clear) or the footprint touched a user's body; Escape
+activations count every entry into Escape. Beyond the thesis: the base's yaw error to the HIP at
+the request (the navigator turns the base after it), Inform activations, the time some user was
+within the critical distance, and the closest any user came.
 """
 
 from __future__ import annotations
