@@ -15,7 +15,7 @@ from methd_jax.evaluation import engine as E
 from methd_jax.evaluation import methods as M
 from methd_jax.evaluation import metrics, stats
 from methd_jax.evaluation import navigator as nav
-from methd_jax.geometry import rotate
+from methd_jax.geometry import KAIROS, rotate
 from methd_jax.motion.features import MotionBank
 from methd_jax.motion.trajectory import Trajectory, quat_from_yaw_pitch
 
@@ -493,7 +493,7 @@ def test_walls_are_solid_and_a_base_in_contact_can_back_out():
     traj = walk([(4.0, 4.0), (4.5, 4.0)], [1.0], request_at_end=False, hold=12.0)
     cfg = E.EngineConfig(episode_limit=10.0)
     res, rec = run(Drive([3.0, 0.0, 0.0]), [traj], wall, (0.0, 0.0, math.pi), steps=500, cfg=cfg)
-    half_length = 1.13 / 2
+    half_length = KAIROS.length / 2
     x = rec["pose"][:-1, 0]  # the last record is the next (here: no) episode's reset
     assert x.min() > -3.0 + half_length - 1e-3  # never into the wall
     assert x[-1] < -3.0 + half_length + 0.005  # but up against it
