@@ -507,6 +507,41 @@ def test_walls_are_solid_and_a_base_in_contact_can_back_out():
     assert res["collisions_obstacle"][0] == 1.0
 
 
+class Jitter:
+    """A method whose commands are random draws from the engine's key (as a policy's LiDAR noise is)."""
+
+    name = "Jitter"
+    multi_user = True
+
+    def init(self):
+        return ()
+
+    def chase(self, state, ctx):
+        v = jax.random.uniform(ctx.key, (3,), minval=-0.4, maxval=0.4)
+        return state, M.Chase(v, jnp.zeros(3), jnp.bool_(False))
+
+
+def test_an_episode_draws_its_noise_from_its_index_not_from_the_episodes_before():
+    # reset per episode (the MU procedure): the third episode is the same whether the second
+    # lasted 4 s or 8 s
+    far = walk([(-4.0, 4.0), (-3.5, 4.0)], [1.0], request_at_end=False, hold=12.0)
+    cfg_short, cfg_long = E.EngineConfig(episode_limit=4.0), E.EngineConfig(episode_limit=8.0)
+    bank = MotionBank.from_trajectories([far])
+    schedule = E.Schedule(
+        users=jnp.zeros((3, 1), jnp.int32), start=jnp.zeros((3, 3)), reset=jnp.ones(3, bool)
+    )
+    rec_a, rec_b = (
+        E.Engine(Jitter(), bank, open_floor(), cfg).trace(schedule, jax.random.key(5), 50 * 30)[0]
+        for cfg in (cfg_short, cfg_long)
+    )
+    third_a, third_b = rec_a["pose"][rec_a["episode"] == 2], rec_b["pose"][rec_b["episode"] == 2]
+    n = min(len(third_a), len(third_b))
+    assert n > 50
+    np.testing.assert_array_equal(third_a[:n], third_b[:n])
+    first = rec_a["pose"][rec_a["episode"] == 0]
+    assert not np.array_equal(first[:n], third_a[:n])  # and not the same draw as another episode
+
+
 def test_summary_and_table():
     r = {
         "request_time": np.array([1.0, 2.0, np.nan]),

@@ -156,7 +156,8 @@ class EvalState:
     method: object  # the method's state
     touching: jax.Array  # (2,) bool: obstacle, user contact at the last step (for counting events)
     scan: jax.Array  # (collision_rays,) ranges from the base's current pose (collisions, the guard)
-    key: jax.Array
+    key: jax.Array  # this episode's, split at every step
+    seed: jax.Array  # the run's key: episode k starts from fold_in(seed, k)
     results: dict  # name -> (K,) per-episode results
 
 
@@ -296,6 +297,7 @@ class Engine:
             touching=jnp.zeros(2, bool),
             scan=self._scan(schedule.start[0]),
             key=key,
+            seed=key,
             results=results,
         )
         return self._begin(state, schedule, jnp.int32(0))
@@ -327,6 +329,9 @@ class Engine:
             # episode; a new user is a new contact
             touching=jnp.stack([s.touching[0] & ~reset, jnp.bool_(False)]),
             scan=jnp.where(reset, self._scan(robot_lib.pose(fresh)), s.scan),
+            # each episode's noise from its own index: an episode that ran longer or shorter does
+            # not re-draw the noise of every one after it
+            key=jax.random.fold_in(s.seed, k),
         )
 
     def _scan(self, pose: jax.Array) -> jax.Array:
