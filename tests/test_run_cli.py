@@ -135,6 +135,31 @@ def test_a_checkpoint_exports_as_a_deployment_folder(small_run, tmp_path, capsys
     assert not list(small_run.glob(".checkpoint-*")) and not (small_run / "deploy-7").exists()
 
 
+def test_several_checkpoints_export_as_their_weight_average(small_run, tmp_path, capsys):
+    one = export.load(export.export_deployment(small_run, tmp_path / "d1", iteration=1, log=lambda *a: None))
+    two = export.load(export.export_deployment(small_run, tmp_path / "d2", iteration=2, log=lambda *a: None))
+    assert export.main([str(small_run), "--iteration", "2", "1"]) == 0
+    folder = small_run / "deploy-avg-1-2"
+    avg = export.load(folder)
+    for a, b, m in zip(*(jax.tree.leaves(p.params) for p in (one, two, avg)), strict=True):
+        np.testing.assert_allclose(m, (np.float64(a) + b) / 2, rtol=0, atol=1e-7)
+    assert not all(map(np.array_equal, jax.tree.leaves(avg.params), jax.tree.leaves(two.params)))
+    np.testing.assert_allclose(avg.obs_mean, (np.float64(one.obs_mean) + two.obs_mean) / 2, atol=1e-6)
+    var = (np.float64(one.obs_std) ** 2 + np.float64(two.obs_std) ** 2) / 2
+    np.testing.assert_allclose(avg.obs_std, np.sqrt(var), rtol=1e-5)
+    assert avg.manifest["trained"]["averaged_iterations"] == [1, 2]
+    assert avg.manifest["trained"]["iteration"] == 2
+    shutil.rmtree(folder)
+    for argv, message in (
+        ([str(small_run), "--iteration", "1", "1"], "must be distinct"),
+        ([str(small_run), "--iteration", "1", "5", "6"], "no checkpoint at iteration 5, 6 (it has: 1, 2;"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            export.main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and message in err and err.strip().count("\n") == 0, err
+
+
 def test_resume_falls_back_past_a_damaged_checkpoint(small_run, tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(small_run, run)  # checkpoints 1 and 2

@@ -28,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import jax
@@ -289,10 +290,16 @@ def to_onnx(policy_dir: str | Path, path: str | Path) -> Path:
 
 
 def export_deployment(
-    source: str | Path, out: str | Path | None = None, *, iteration: int | None = None, log=print
+    source: str | Path,
+    out: str | Path | None = None,
+    *,
+    iteration: int | Sequence[int] | None = None,
+    log=print,
 ) -> Path:
     """The deployment folder for the run or policy folder ``source`` (default ``<run>/deploy``); with
-    ``iteration``, for that checkpoint of the run folder ``source`` (default ``<run>/deploy-<N>``)."""
+    ``iteration``, for that checkpoint of the run folder ``source`` (default ``<run>/deploy-<N>``),
+    or for the average of several (default ``<run>/deploy-avg-<N1>-<N2>...``; see
+    :func:`train.run.export_checkpoint`)."""
     source = Path(source)
     if not source.exists():
         raise ExportError(f"{source}: no such run or policy folder")
@@ -302,14 +309,21 @@ def export_deployment(
         raise ExportError(f"--iteration takes a run folder; {source} has no config.json")
     from train import run as run_lib  # train.run imports this module
 
+    iterations = [iteration] if isinstance(iteration, int) else list(iteration)
     with tempfile.TemporaryDirectory(prefix=".checkpoint-", dir=source) as tmp:
         try:
-            run_lib.export_checkpoint(source, iteration, Path(tmp) / "policy")
+            run_lib.export_checkpoint(source, iterations, Path(tmp) / "policy")
         except (ConfigError, FileNotFoundError) as e:
             raise ExportError(str(e)) from None
         shutil.copyfile(source / "config.json", Path(tmp) / "config.json")
-        out = out if out is not None else source / f"deploy-{iteration}"
-        return _deploy(Path(tmp), out, log, f"checkpoint {iteration} of {source}")
+        if len(iterations) == 1:
+            name, what = f"deploy-{iterations[0]}", f"checkpoint {iterations[0]} of {source}"
+        else:
+            its = sorted(iterations)
+            name = "deploy-avg-" + "-".join(map(str, its))
+            what = f"the average of checkpoints {', '.join(map(str, its))} of {source}"
+        out = out if out is not None else source / name
+        return _deploy(Path(tmp), out, log, what)
 
 
 def _deploy(source: Path, out: str | Path | None, log, what: str | None = None) -> Path:
@@ -379,13 +393,17 @@ def main(argv=None) -> int:
     )
     parser.add_argument("source", help="a run folder (runs/<name>) or its policy/ folder")
     parser.add_argument(
-        "--out", help="deployment folder to write (default: <run>/deploy, with --iteration <run>/deploy-<N>)"
+        "--out",
+        help="deployment folder to write (default: <run>/deploy; with --iteration <run>/deploy-<N>, "
+        "or <run>/deploy-avg-<N1>-<N2>... for several)",
     )
     parser.add_argument(
         "--iteration",
         type=int,
+        nargs="+",
         metavar="N",
-        help="export the run's checkpoint at iteration N instead of its final policy",
+        help="export the run's checkpoint at iteration N instead of its final policy; several: "
+        "the uniform average of their weights and observation statistics",
     )
     args = parser.parse_args(argv)
     try:

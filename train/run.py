@@ -16,6 +16,7 @@ import functools
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import jax
@@ -508,37 +509,73 @@ def _help_epilog() -> str:
     return "\n".join(lines)
 
 
-def export_checkpoint(run_dir: str | Path, iteration: int, out: str | Path) -> Path:
+def export_checkpoint(run_dir: str | Path, iteration: int | Sequence[int], out: str | Path) -> Path:
     """The policy of the checkpoint at ``iteration`` of the run in ``run_dir`` exported to the
-    policy folder ``out``, as the run exports its last one to ``policy/``. :class:`ConfigError`
-    names the iterations there when ``iteration`` is not one of them."""
+    policy folder ``out``, as the run exports its last one to ``policy/``; with several iterations,
+    the uniform average of their parameters and observation statistics (a weight average of one
+    run's late checkpoints, as in stochastic weight averaging, Izmailov et al. 2018).
+    :class:`ConfigError` names the iterations there when one of ``iteration`` is not."""
     run_dir = Path(run_dir)
+    iterations = [iteration] if isinstance(iteration, int) else list(iteration)
+    if not iterations or len(set(iterations)) != len(iterations):
+        raise ConfigError(f"iterations to export must be distinct and at least one, got {iterations}")
     _, _, config = load_config(run_dir)
     if not (run_dir / "checkpoints").is_dir():
         raise ConfigError(f"{run_dir} has no checkpoints folder")
     ckpts = Checkpoints(run_dir / "checkpoints")
     try:
         steps = ckpts.steps()
-        if iteration not in steps:
+        missing = [i for i in iterations if i not in steps]
+        if missing:
             have = ", ".join(map(str, steps)) or "none"
             raise ConfigError(
-                f"{run_dir} has no checkpoint at iteration {iteration} (it has: {have}; a run keeps "
-                "every one with checkpoint_keep=0)"
+                f"{run_dir} has no checkpoint at iteration {', '.join(map(str, missing))} (it has: "
+                f"{have}; a run keeps every one with checkpoint_keep=0)"
             )
         setup = build(config)
         state = jax.jit(setup.trainer.init)(jax.random.key(config.seed))
-        try:
-            learned = ckpts.restore_fields(state, ("params", "obs_stats"), iteration)
-        except (ValueError, KeyError, TypeError) as err:
-            raise ConfigError(f"{run_dir}: checkpoint {iteration} does not restore ({err})") from None
+        learned = []
+        for it in iterations:
+            try:
+                learned.append(ckpts.restore_fields(state, ("params", "obs_stats"), it))
+            except (ValueError, KeyError, TypeError) as err:
+                raise ConfigError(f"{run_dir}: checkpoint {it} does not restore ({err})") from None
     finally:
         ckpts.close()
-    return _export(setup, out, learned["params"], learned["obs_stats"], run_dir, iteration)
+    if len(learned) == 1:
+        params, obs_stats = learned[0]["params"], learned[0]["obs_stats"]
+    else:
+        # in float64: the average does not depend on the order the checkpoints are named in
+        # beyond float32's rounding; the normaliser's variance is averaged like a weight
+        def mean(*xs):
+            return np.mean(np.stack([np.asarray(x, np.float64) for x in xs]), 0).astype(np.float32)
+
+        params = jax.tree.map(mean, *[d["params"] for d in learned])
+        obs_stats = jax.tree.map(mean, *[d["obs_stats"] for d in learned])
+    trained_at = max(iterations)
+    averaged = sorted(iterations) if len(iterations) > 1 else None
+    return _export(setup, out, params, obs_stats, run_dir, trained_at, averaged)
 
 
-def _export(setup: Setup, out: Path, params, obs_stats, run_dir: Path, iteration: int) -> Path:
-    """The policy ``params`` + ``obs_stats`` of ``run_dir`` at ``iteration`` as the policy folder ``out``."""
+def _export(
+    setup: Setup,
+    out: Path,
+    params,
+    obs_stats,
+    run_dir: Path,
+    iteration: int,
+    averaged: list[int] | None = None,
+) -> Path:
+    """The policy ``params`` + ``obs_stats`` of ``run_dir`` at ``iteration`` as the policy folder
+    ``out``; ``averaged`` names the checkpoints whose average they are."""
     config = setup.config
+    trained = {
+        "run": str(run_dir),
+        "iteration": iteration,
+        "transitions": iteration * setup.trainer.transitions_per_iteration,
+    }
+    if averaged:
+        trained["averaged_iterations"] = averaged
     return export.export(
         out,
         env_name=config.env_name,
@@ -548,11 +585,7 @@ def _export(setup: Setup, out: Path, params, obs_stats, run_dir: Path, iteration
         obs_stats=obs_stats,
         obs_clip=config.ppo.obs_clip,
         policies=dependencies(config),
-        trained={
-            "run": str(run_dir),
-            "iteration": iteration,
-            "transitions": iteration * setup.trainer.transitions_per_iteration,
-        },
+        trained=trained,
     )
 
 
