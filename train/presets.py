@@ -49,8 +49,9 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            transitions, ~40 min). The shipped NavRL policy is this preset and a second stage
            from it with p_s (``env.weights.stopping=-100``, a 10 cm collision margin, the lab
            twin in half the episodes, 35 min) and a third with the same settings and the shipped
-           wrist-reading GuideRL as the goal source (35 min; 110 min in all); commands, figures
-           and what did not work: ``docs/results.md`` and the card.
+           wrist-reading GuideRL as the goal source (35 min; 110 min in all), averaged over
+           that stage's last three checkpoints (``python -m train.export RUN --iteration 1200
+           1400 1600``); commands, figures and what did not work: ``docs/results.md`` and the card.
 ``su``     single-user policy: 2,048 environments, 960,000 timesteps (Table 4.4).
 ``guide``  GuideRL: 4,096 environments, 240,000 timesteps.
 ``guide_cpu`` GuideRL for a 2-core CPU: ``guide`` with 1,024 environments for 48,000 timesteps
@@ -124,7 +125,7 @@ class RunConfig:
     """Iterations between checkpoints (one is always written at the end)."""
     checkpoint_keep: int = 3
     """Checkpoints kept, the newest (0: every one, to choose between them afterwards:
-    ``python -m train.export RUN --iteration N``)."""
+    ``python -m train.export RUN --iteration N``, or ``N1 N2 ...`` for their average)."""
     init_from: str = ""
     """Start from a run folder's newest checkpoint (parameters, optimiser, observation and value
     statistics; same network, observation size and num_envs; floors, rewards and PPO settings may
