@@ -113,6 +113,11 @@ class NavConfig:
     """Random candidate poses per reset for the exact free-space spawn sampler."""
     spawn_margin: float = 0.05
     """Extra clearance of the spawn disc (r = 0.77 m) from obstacles, and beyond d_crit from users, m."""
+    spawn_near: tuple[float, float] = (0.0, 0.15)
+    """(share, band): in ``share`` of the episodes the base starts with its spawn disc less than
+    ``band`` m beyond ``spawn_margin`` from an obstacle or wall (where a free candidate is that
+    close), so that training sees starts beside furniture, where the evaluation's Escape can park
+    the base; uniform spawns put few there (the thesis: share 0)."""
     goal_switch_time: tuple[float, float] = (2.0, 6.0)
     """Scripted goal source (``nav`` without a GuideRL policy): seconds between new targets."""
     goal_rate: float = 0.02
@@ -189,6 +194,9 @@ class NavConfig:
             lo, hi = getattr(self, name)
             if not 0 < lo <= hi:
                 raise ValueError(f"{name} must be an ordered positive range, got {(lo, hi)}")
+        share, band = self.spawn_near
+        if not (0.0 <= share <= 1.0 and band > 0):
+            raise ValueError(f"spawn_near must be (share in [0, 1], band > 0), got {self.spawn_near!r}")
         window = self.start_before_request
         if not (len(window) == 2 and 0 <= window[0] <= window[1]):
             raise ValueError(f"start_before_request must be an ordered range of seconds >= 0, got {window!r}")
@@ -333,7 +341,9 @@ class NavEnv(Env):
         every episode, and the exact test never spawns inside an obstacle. On 2000 default floors
         at least 26% of the area (41% on average) passes the obstacle test, so 256 candidates all
         failing has a probability below 1e-20 even after the users' discs are excluded; should it
-        happen, candidate 0 is used and the episode ends at once in a collision.
+        happen, candidate 0 is used and the episode ends at once in a collision. With
+        ``spawn_near``, a share of the episodes takes the first passing candidate within the band
+        of an obstacle instead (the uniform one where none is).
         """
         cfg = self.config
         keys = jax.random.split(rng, 12)  # one key per use: the world's own key is keys[8]
@@ -364,7 +374,14 @@ class NavEnv(Env):
             >= cfg.safety.critical_distance + cfg.spawn_margin,
             axis=1,
         )
-        xy = cand[jnp.argmax(clear & far)]
+        ok = clear & far
+        share, band = cfg.spawn_near
+        if share > 0:
+            gap = jax.vmap(lambda p: floors.clearance(floor, p))(cand) - radius
+            close = ok & (gap < band)
+            near = jax.random.bernoulli(jax.random.fold_in(keys[11], 2), share) & jnp.any(close)
+            ok = jnp.where(near, close, ok)
+        xy = cand[jnp.argmax(ok)]
         yaw = jax.random.uniform(keys[4], (), minval=-jnp.pi, maxval=jnp.pi)
         robot = self.robot.init(jnp.concatenate([xy, yaw[None]]))
 

@@ -148,6 +148,24 @@ def test_spawn_is_clear_of_obstacles_and_users(bank):
     assert float(jnp.min(jax.vmap(lambda s: s)(states.obs)[:, :720])) > 0.7
 
 
+def test_spawn_near_starts_a_share_of_episodes_beside_an_obstacle(bank):
+    def gaps(**options):
+        env = envs.make("su", bank=bank, **options)
+        w = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(6), 512)).pipeline_state
+        xy = jax.vmap(robot_lib.pose)(w.robot)[:, :2]
+        return np.asarray(jax.vmap(floors.clearance)(w.floor, xy)) - (0.77 + 0.05)
+
+    uniform, half = gaps(), gaps(spawn_near=(0.5, 0.15))
+    assert uniform.min() >= -1e-4 and half.min() >= -1e-4  # both still spawn clear
+    assert np.mean(uniform < 0.15) < 0.2
+    # about half drawn within the band, plus the uniform draws that fall there anyway
+    assert 0.45 < np.mean(half < 0.15) < 0.7
+    with pytest.raises(ValueError, match="spawn_near must be"):
+        NavConfig(spawn_near=(1.5, 0.15))
+    with pytest.raises(ValueError, match="spawn_near must be"):
+        NavConfig(spawn_near=(0.5, 0.0))
+
+
 def _goal_seeker(env, gain=1.0, top_speed=1.0, keep_away=2.3):
     """Drives straight at the goal (velocity gain * (goal - robot), capped at ``top_speed`` m/s),
     backing away from a user closer than ``keep_away`` (the HIP itself lies 2.02 m from the user)."""
