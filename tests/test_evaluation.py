@@ -669,6 +669,25 @@ def test_procedural_counts_contacts_not_the_training_margin():
     assert stopped["obstacle"] == 0.0 and stopped["timeout"] >= 0.5
 
 
+def test_procedural_floors_start_where_the_thesis_does_whatever_training_drew():
+    import dataclasses
+
+    from envs import tasks
+    from train.evaluate import procedural_config
+
+    base = tasks.get("su").config
+    trained = dataclasses.replace(
+        base,
+        lab_fraction=0.5,
+        spawn_near=(0.3, 0.15),
+        safety=dataclasses.replace(base.safety, collision_margin=0.1),
+    )
+    config = procedural_config(trained)
+    assert config.spawn_near[0] == 0.0 and config.lab_fraction == 0.0 and not config.lab
+    assert config.safety.collision_margin == 0.0 and config.split == "test"
+    assert config.floor == trained.floor and config.weights == trained.weights
+
+
 # -- the command line ----------------------------------------------------------------------------
 
 

@@ -88,18 +88,26 @@ def procedural(
     return procedural_outcomes(trained, policy, episodes, seed=seed, floor=floor)
 
 
-def procedural_outcomes(
-    trained, policy, episodes: int, *, seed: int = 1, floor: FloorConfig | None = None
-) -> dict[str, float]:
-    """:func:`procedural` for a policy ``obs -> action`` trained with the ``su`` config ``trained``."""
-    config = dataclasses.replace(
+def procedural_config(trained, floor: FloorConfig | None = None):
+    """The ``su`` config of :func:`procedural`'s episodes for a policy trained with ``trained``:
+    its floors (or ``floor``) but never the lab twin, the test trajectories, no collision margin,
+    and the uniform spawn whatever share of starts beside obstacles training drew."""
+    return dataclasses.replace(
         trained,
         lab=False,
         lab_fraction=0.0,
         split="test",
         floor=floor or trained.floor,
         safety=dataclasses.replace(trained.safety, collision_margin=0.0),
+        spawn_near=(0.0, trained.spawn_near[1]),
     )
+
+
+def procedural_outcomes(
+    trained, policy, episodes: int, *, seed: int = 1, floor: FloorConfig | None = None
+) -> dict[str, float]:
+    """:func:`procedural` for a policy ``obs -> action`` trained with the ``su`` config ``trained``."""
+    config = procedural_config(trained, floor)
     env = tasks.get("su").build(config)
     steps = round(config.time_limit * CONTROL_HZ)
     rays = eng.EngineConfig().collision_rays
