@@ -72,6 +72,7 @@ class Policy:
             guide_actions=state.guide_actions,
             pending=jnp.zeros((0, 3)),
             dynamics=jnp.ones(2),
+            contacts=jnp.int32(0),
             key=ctx.key,
         )
         world = self.env.update_goal(world, ctx.users, k_goal, scripted_step=True)

@@ -157,6 +157,11 @@ class NavConfig:
     trajectories' beginning where they are shorter), so that training dwells on the approach to a
     user who is about to ask rather than on long walks; (0, 0): at the trajectories' beginning (the
     thesis)."""
+    contact_limit: int = 1
+    """Obstacle contacts that end an episode. Above 1, each contact before the last stops the base
+    at rest where it stood before the step (the evaluation stops a base at furniture rather than
+    ending the episode there) and pays the collision penalty, and the episode goes on, so that
+    training sees a base held at furniture with the goal beyond it (the thesis: 1)."""
     request_weight: float = 0.0
     """Above 0: at the step the request fires, r_d (towards the requester's HIP, which is the goal
     from that step on) is paid this many times more, reported as ``reward/request``. The
@@ -164,7 +169,7 @@ class NavConfig:
     a policy is judged by; with a short ``cooldown`` the episode ends there (the thesis: 0)."""
 
     def __post_init__(self):
-        for name in ("num_users", "num_rays", "spawn_candidates", "action_latency"):
+        for name in ("num_users", "num_rays", "spawn_candidates", "action_latency", "contact_limit"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise ValueError(f"{name} must be an integer, got {value!r}")
@@ -208,6 +213,8 @@ class NavConfig:
             raise ValueError("action_latency and request_jitter must be >= 0")
         if self.num_rays < 8 or self.spawn_candidates < 1:
             raise ValueError("num_rays must be >= 8 and spawn_candidates >= 1")
+        if self.contact_limit < 1:
+            raise ValueError(f"contact_limit must be at least 1, got {self.contact_limit}")
         if abs(sum(self.action_weights) - 1.0) > 1e-6:
             raise ValueError(f"action_weights must sum to 1, got {self.action_weights}")
         if not 0.0 <= self.lab_fraction <= 1.0:
@@ -279,6 +286,7 @@ class World:
     guide_actions: jax.Array  # (2,) GuideRL's a_{t-1}, a_{t-2} (when a GuideRL policy drives the goal)
     pending: jax.Array  # (L, 3) commands on their way to the base (action latency)
     dynamics: jax.Array  # (2,) mass and force scale of the base
+    contacts: jax.Array  # () int32 obstacle contacts so far in the episode
     key: jax.Array  # PRNG key, split every step
 
 
@@ -406,6 +414,7 @@ class NavEnv(Env):
             guide_actions=jnp.zeros(2),
             pending=jnp.zeros((cfg.action_latency, 3)),
             dynamics=dynamics,
+            contacts=jnp.int32(0),
             key=keys[8],
         )
         world = self.update_goal(world, self._user_features(world), keys[9], scripted_step=False)
@@ -434,6 +443,7 @@ class NavEnv(Env):
         else:
             applied, pending = cmd, w.pending
         model = self.robot.scaled_model(w.dynamics[0], w.dynamics[1]) if cfg.randomize_dynamics else None
+        before = w.robot
         robot = self.robot.step(w.robot, applied, model)
         w = w.replace(robot=robot, t=w.t + 1, pending=pending, key=key)
         users = self._user_features(w)
@@ -443,7 +453,18 @@ class NavEnv(Env):
         weighted = self._with_request(weighted, terms, w.t == w.request_step)
         reward = reward + weighted.get("reward/request", 0.0)
 
-        collided = (terms["obstacle_collision"] > 0) | (terms["user_collision"] > 0)
+        hit = terms["obstacle_collision"] > 0
+        if cfg.contact_limit > 1:
+            # the contact is paid where it happened; the base goes on from where it stood, at rest
+            contacts = w.contacts + hit.astype(jnp.int32)
+            hold = hit & (contacts < cfg.contact_limit)
+            stopped = w.replace(robot=before.replace(qvel=jnp.zeros_like(before.qvel)))
+            held_obs, _, held_metrics = self.observe(stopped, a, k_noise, users)
+            pick = lambda x, y: jnp.where(hold, x, y)  # noqa: E731
+            w = jax.tree.map(pick, stopped, w).replace(contacts=contacts)
+            robot, obs, metrics = w.robot, pick(held_obs, obs), jax.tree.map(pick, held_metrics, metrics)
+            hit = hit & ~hold
+        collided = hit | (terms["user_collision"] > 0)
         success = w.t >= w.request_step + self._cooldown_steps
         timeout = w.t - w.start >= self._limit_steps
         done = collided | success | timeout

@@ -215,6 +215,43 @@ def test_driving_into_a_wall_terminates_with_the_obstacle_penalty(bank):
     assert float(state.metrics["reward/obstacle_collision"]) == -900.0 and float(state.reward) < -800
 
 
+def test_contact_limit_holds_the_base_at_the_wall_and_pays_each_contact(bank):
+    env = envs.make("su", bank=bank, floor=EMPTY, contact_limit=4)
+    state = jax.jit(env.reset)(jax.random.key(7))
+    w = state.pipeline_state
+    b = np.asarray(w.floor.bounds)
+    user = np.asarray(bank.pose[w.users[0], 0, :2])
+    start_y = b[1] + 1.5 if user[1] > 0 else b[3] - 1.5
+    robot = env.robot.init(jnp.array([b[2] - 4.0, start_y, 0.0]))  # 4 m from the east wall, facing it
+    state = state.replace(pipeline_state=w.replace(robot=robot))
+    step = jax.jit(env.step)
+    contacts, held_at = [], None
+    for _ in range(300):
+        before = np.asarray(robot_lib.pose(state.pipeline_state.robot))
+        state = step(state, jnp.array([1.0, 0.0, 0.0]))  # full speed at the east wall, throughout
+        if float(state.metrics["collision_obstacle"]):
+            contacts.append(float(state.metrics["reward/obstacle_collision"]))
+            after = state.pipeline_state.robot
+            if float(state.done):
+                break
+            # not the last contact: the base stands where it was before the step, at rest, and
+            # sees the wall from there
+            np.testing.assert_allclose(np.asarray(robot_lib.pose(after)), before, atol=1e-6)
+            assert float(jnp.abs(after.qvel).max()) == 0.0
+            assert float(state.metrics["closest_obstacle"]) > 0.0
+            held_at = held_at if held_at is not None else before
+        else:
+            assert not contacts or float(state.done) == 0.0
+    # pressing on ends the episode at the fourth contact, as a collision (not a truncation)
+    assert contacts == [-900.0] * 4
+    assert float(state.done) == 1.0 and float(state.info["truncation"]) == 0.0
+    assert float(state.metrics["success"]) == 0.0
+    assert int(state.pipeline_state.contacts) == 4
+    assert held_at[0] > b[2] - 1.0  # held at the east wall, not somewhere on the way
+    with pytest.raises(ValueError, match="contact_limit must be"):
+        NavConfig(contact_limit=0)
+
+
 def test_episode_succeeds_after_the_cooldown_and_auto_resets(bank):
     env = envs.make("su", bank=bank, floor=OPEN_ROOM, cooldown=1.0)
     wrapped = envs.AutoReset(env)
