@@ -681,9 +681,11 @@ def test_procedural_floors_start_where_the_thesis_does_whatever_training_drew():
         lab_fraction=0.5,
         spawn_near=(0.3, 0.15),
         safety=dataclasses.replace(base.safety, collision_margin=0.1),
+        contact_limit=10,
     )
     config = procedural_config(trained)
     assert config.spawn_near[0] == 0.0 and config.lab_fraction == 0.0 and not config.lab
+    assert config.contact_limit == 1
     assert config.safety.collision_margin == 0.0 and config.split == "test"
     assert config.floor == trained.floor and config.weights == trained.weights
 

@@ -91,7 +91,8 @@ def procedural(
 def procedural_config(trained, floor: FloorConfig | None = None):
     """The ``su`` config of :func:`procedural`'s episodes for a policy trained with ``trained``:
     its floors (or ``floor``) but never the lab twin, the test trajectories, no collision margin,
-    and the uniform spawn whatever share of starts beside obstacles training drew."""
+    the uniform spawn whatever share of starts beside obstacles training drew, and the episode
+    ending at its first contact however many training let it go on through."""
     return dataclasses.replace(
         trained,
         lab=False,
@@ -100,6 +101,7 @@ def procedural_config(trained, floor: FloorConfig | None = None):
         floor=floor or trained.floor,
         safety=dataclasses.replace(trained.safety, collision_margin=0.0),
         spawn_near=(0.0, trained.spawn_near[1]),
+        contact_limit=1,
     )
 
 
