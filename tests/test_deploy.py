@@ -695,9 +695,8 @@ def test_watchdog_catches_a_failing_policy(su_deploy):
 
 def test_controller_tick_latency_fits_the_50hz_budget(su_deploy):
     """The goal (p99 < 2 ms) is measured in docs/benchmarks.md; here, on a shared CI core, only the
-    50 Hz budget itself is asserted, on the best of three measurements (as timeit takes the minimum
-    of its repeats): another process busy on both cores once put a single run's p99 at 20.2 ms with
-    a median of 4.5 ms."""
+    50 Hz budget itself is asserted, on the best of three measurements (timeit's minimum over
+    repeats): another process on the shared cores can push a single measurement's p99 past it."""
     controller = deploy.Controller(su_deploy)
     runs = [deploy.latency(controller, ticks=300, seed=seed) for seed in range(3)]
     for stats in runs:
