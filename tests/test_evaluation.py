@@ -798,6 +798,30 @@ def test_cli_no_su_runs_the_multi_user_rows_alone(monkeypatch, tmp_path):
     assert seen["su"] == ["Heuristic", "Static"] and seen["mu"] == []
 
 
+def test_split_all_replays_every_trajectory(monkeypatch, tmp_path):
+    """``--split all`` replays every trajectory of the set (for a validation set made with another
+    seed), and the report names no split."""
+    from train import evaluate
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_evaluate(su, mu, bank, floor, **kwargs):
+        seen.update(trajectories=bank.num_trajectories, offset=kwargs["mu_offset"])
+        raise Stop
+
+    monkeypatch.setattr(evaluate, "evaluate", fake_evaluate)
+    with pytest.raises(Stop):
+        evaluate.main(["--split", "all", "--no-su", "--no-pretrained", "--quiet", "--out", str(tmp_path)])
+    assert seen == {"trajectories": 442, "offset": 50}
+    meta = {"trajectories": 300, "split": "all", "motion": "val", "floor": "lab", "mu_offset": 50}
+    assert evaluate._meta_text({**meta, "seed": 0, "date": "d"}).startswith("300 trajectories from `val`")
+    guide = {"accuracy": 0.99, "pairs": 89700}
+    assert "89700 ordered pairs of the trajectories (" in evaluate._guide_text(guide, "all")
+
+
 def test_split_train_is_the_other_trajectories():
     """``--split train`` replays the default set's 342 training trajectories, none of the 100 test ones."""
     from methd_jax.motion.features import HipConfig

@@ -304,19 +304,23 @@ EARLY = 1.0
 """s before the request at which GuideRL's accuracy is also reported."""
 
 
+def _trajectories(split: str) -> str:
+    return "trajectories" if split == "all" else f"{split} trajectories"
+
+
 def _guide_text(g: dict, split: str = "test") -> str:
     early = ""
     if "accuracy_early" in g:
         early = f", {g['early_s']:g} s before it in {100 * g['accuracy_early']:.1f}%"
     return (
         f"GuideRL: the requesting user named at the request in {100 * g['accuracy']:.1f}% of "
-        f"{g['pairs']} ordered pairs of the {split} trajectories (thesis: 99%){early}"
+        f"{g['pairs']} ordered pairs of the {_trajectories(split)} (thesis: 99%){early}"
     )
 
 
 def _meta_text(meta: dict) -> str:
     return (
-        f"{meta['trajectories']} {meta.get('split', 'test')} trajectories from `{meta['motion']}` on floor "
+        f"{meta['trajectories']} {_trajectories(meta.get('split', 'test'))} from `{meta['motion']}` on floor "
         f"`{meta['floor']}`; "
         f"MU pairs offset by {meta['mu_offset']}; seed {meta['seed']}; {meta['date']}."
     )
@@ -344,10 +348,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument(
         "--split",
-        choices=("test", "train"),
+        choices=("test", "train", "all"),
         default="test",
-        help="which trajectories of a set of more than 100: the held-out test ones (Table 5.1) or the "
-        "training ones (to choose between checkpoints without looking at the test set)",
+        help="which trajectories of a set of more than 100: the held-out test ones (Table 5.1), the "
+        "training ones, or all of them (for a validation set training never saw, made with "
+        "`python -m methd_jax.motion synth --seed 1 --n 300 --out DIR`): to choose between checkpoints "
+        "without looking at the test set",
     )
     parser.add_argument(
         "--floor", default="lab", help="lab (the lab twin) or a floor JSON in the lab's format"
@@ -394,7 +400,7 @@ def main(argv=None) -> int:
             floor = floors.lab() if args.floor == "lab" else floors.lab(args.floor)
         except floors.FloorSpecError as err:
             raise ConfigError(str(err)) from None
-        bank = load_bank(args.motion, args.split, HipConfig(), require_split=args.split != "test")
+        bank = load_bank(args.motion, args.split, HipConfig(), require_split=args.split == "train")
         if args.trajectories is not None:
             bank = bank.take(range(min(args.trajectories, bank.num_trajectories)))
         su = {} if args.no_su else {"Static": methods.Static()}
