@@ -75,8 +75,6 @@ class RewardWeights:
     acceleration: float = -0.0015
     stopping: float = 0.0
     """p_s, beyond the thesis (0): per metre by which the base could not brake clear of the scan."""
-    inflation_peak: float = 0.0
-    """Beyond the thesis (0): per unit of the deepest ray's share of p_i (1 at the boundary)."""
 
 
 SU_WEIGHTS = RewardWeights()
@@ -127,15 +125,6 @@ def inflation_penalty(inflation: jax.Array, safety: SafetyConfig) -> jax.Array:
     """p_i (4.12): sum over rays of max((d_i - f(l)) / d_i, 0), f(l) from eq. 4.13."""
     d = safety.inflation_distance
     return jnp.sum(jnp.maximum((d - inflation) / d, 0.0))
-
-
-def inflation_peak(inflation: jax.Array, safety: SafetyConfig) -> jax.Array:
-    """The deepest any ray reaches into the inflation layer, max of p_i's summands (0 to 1).
-
-    p_i sums over rays, so a wall beside the base costs the dozens of rays that see it and a
-    pillar of the same clearance the few that do; this term costs both alike."""
-    d = safety.inflation_distance
-    return jnp.max(jnp.maximum((d - inflation) / d, 0.0))
 
 
 STOP_SAMPLES = 4
@@ -251,7 +240,6 @@ def terms(
         "user_collision": user_collisions(user_distances, safety),
         "critical_zone": critical_zone(user_distances, safety),
         "inflation": inflation_penalty(inflation, safety),
-        "inflation_peak": inflation_peak(inflation, safety),
         "action_smoothness": action_smoothness(action, prev_action, prev_prev_action),
         "velocity": velocity_penalty(velocity),
         "acceleration": acceleration_penalty(acceleration),

@@ -123,8 +123,6 @@ def test_touching_a_wall_collides_and_the_inflation_layer_counts_rays(side):
     expected = np.sum(np.maximum((0.5 - f) / 0.5, 0.0))
     got = float(_terms(r)["inflation"])
     assert got == pytest.approx(expected, rel=1e-5) and got > 1.0
-    # the peak term is the deepest ray alone
-    assert float(_terms(r)["inflation_peak"]) == pytest.approx(np.max((0.5 - f) / 0.5), rel=1e-5)
     # straight at the wall (ray 0 for the front, ray 180 for the left side) f(l) is exactly the gap
     ray = 0 if side == "front" else 180
     assert f[ray] == pytest.approx(0.2, abs=1e-5)
@@ -132,22 +130,6 @@ def test_touching_a_wall_collides_and_the_inflation_layer_counts_rays(side):
     assert float(_terms(r, d_goal=0.5, dyaw=0.0)["distance"]) == 0.0
     assert float(_terms(_wall_ranges(side, 0.8), d_goal=0.5, dyaw=0.0)["distance"]) == pytest.approx(2.5)
     assert float(_terms(_wall_ranges(side, 0.8))["inflation"]) == 0.0
-    assert float(_terms(_wall_ranges(side, 0.8))["inflation_peak"]) == 0.0
-
-
-def test_inflation_peak_charges_a_pillar_as_much_as_a_wall():
-    """p_i sums over rays, so a pillar 0.2 m off the front costs a fraction of a wall 0.2 m off it;
-    the peak term charges the pillar by its deepest ray, as deep as the wall's ray straight ahead."""
-    x = HALF_L + 0.2
-    pillar = Floor.from_primitives(circles=[(x + 0.25, 0.0, 0.25)])
-    r_pillar = np.asarray(lidar.scan(pillar, jnp.zeros(3)))
-    p, w = _terms(r_pillar), _terms(_wall_ranges("front", 0.2))
-    assert float(p["inflation"]) < 0.5 * float(w["inflation"])
-    assert float(p["inflation_peak"]) == pytest.approx((0.5 - 0.2) / 0.5, abs=1e-3)
-    assert float(w["inflation_peak"]) >= float(p["inflation_peak"])
-    weights = dataclasses.replace(NAV_WEIGHTS, inflation_peak=-10.0)
-    assert float(rewards.total(p, weights)[1]["reward/inflation_peak"]) == pytest.approx(-6.0, abs=0.01)
-    assert float(rewards.total(p, NAV_WEIGHTS)[1]["reward/inflation_peak"]) == 0.0  # off by default
 
 
 def test_a_jerk_in_actions():
