@@ -26,6 +26,7 @@ class PolicyState:
     velocity: jax.Array  # (3,) base velocity at the previous step (for the acceleration term)
     u_w: jax.Array  # () GuideRL's user weight
     guide_actions: jax.Array  # (2,) GuideRL's previous actions
+    step: jax.Array  # () int32 the engine step of the last call (-2 before the first)
 
 
 class Policy:
@@ -50,10 +51,27 @@ class Policy:
             raise ValueError("a two-user (NavRL) policy needs a GuideRL policy for its goal")
 
     def init(self):
-        return PolicyState(jnp.zeros((3, 3)), jnp.zeros(3), jnp.float32(0.0), jnp.zeros(2))
+        return PolicyState(jnp.zeros((3, 3)), jnp.zeros(3), jnp.float32(0.0), jnp.zeros(2), jnp.int32(-2))
 
-    def chase(self, state: PolicyState, ctx: Context):
-        k_goal, k_obs = jax.random.split(ctx.key)
+    def resume(self, state: PolicyState, ctx: Context) -> PolicyState:
+        """``state`` with the base's own motion as its action and velocity history where the engine
+        drove the base since the last call (Escape, Inform, a request's Haptic, or a carried-over
+        base moving as its episode begins). Training never has that gap: a history of seconds ago
+        gives a one-step acceleration of the whole change since (tens of m/s^2) and blends actions
+        that pointed wherever the policy drove before, often at the user it escaped from; the
+        navigator likewise ramps from the base's velocity when it takes over from a policy."""
+        velocity = robot_lib.velocity(ctx.robot)
+        robot = self.env.config.robot
+        scale = jnp.array([robot.max_speed, robot.max_speed, robot.max_yaw_rate])
+        moving = jnp.broadcast_to(jnp.clip(velocity / scale, -1.0, 1.0), state.actions.shape)
+        gap = ctx.step != state.step + 1
+        return state.replace(
+            actions=jnp.where(gap, moving, state.actions),
+            velocity=jnp.where(gap, velocity, state.velocity),
+        )
+
+    def _world(self, state: PolicyState, ctx: Context, key: jax.Array) -> World:
+        """The environment's world for this step, its goal updated (GuideRL run once for NavRL)."""
         u = self.env.config.num_users
         world = World(
             robot=ctx.robot,
@@ -75,7 +93,20 @@ class Policy:
             contacts=jnp.int32(0),
             key=ctx.key,
         )
-        world = self.env.update_goal(world, ctx.users, k_goal, scripted_step=True)
+        return self.env.update_goal(world, ctx.users, key, scripted_step=True)
+
+    def idle(self, state: PolicyState, ctx: Context) -> PolicyState:
+        """A step the engine drives the base: GuideRL goes on watching the users, as the deployed
+        GuideRL node does whatever drives the base, so that its goal is current when Chase resumes."""
+        if self.env.config.num_users != 2:
+            return state
+        world = self._world(state, ctx, jax.random.split(ctx.key)[0])
+        return state.replace(u_w=world.u_w, guide_actions=world.guide_actions)
+
+    def chase(self, state: PolicyState, ctx: Context):
+        state = self.resume(state, ctx)
+        k_goal, k_obs = jax.random.split(ctx.key)
+        world = self._world(state, ctx, k_goal)
         obs, _, _ = self.env.observe(world, state.actions[0], k_obs, ctx.users)
         action = jnp.clip(self.policy(obs), -1.0, 1.0)
         command = self.env.command(action, state.actions[:2])
@@ -96,5 +127,6 @@ class Policy:
             velocity=robot_lib.velocity(ctx.robot),
             u_w=world.u_w,
             guide_actions=world.guide_actions,
+            step=ctx.step,
         )
         return new, Chase(command, world.goal, jnp.bool_(False))

@@ -21,7 +21,7 @@ from conftest import export_random_policy, fuzz
 import networks
 from envs import sample_bag
 from envs.nav import NavConfig, NavEnv
-from methd_jax import deploy, lidar, ros_messages
+from methd_jax import deploy, floors, lidar, ros_messages
 from methd_jax import robot as robot_lib
 from methd_jax.deploy import mcap_replay, observation, ros_node
 from methd_jax.deploy.controller import clamp_to_limits
@@ -594,7 +594,98 @@ def test_watchdog_stops_on_bad_inputs(su_deploy, change, now, reason):
     out = c.tick(dataclasses.replace(_good(), **change), now=now)
     assert out.reason == reason and not np.any(out.twist) and not np.any(out.policy)
     assert c.interventions[reason] == 1
-    assert not np.any(c.actions)  # the history restarts from a standstill
+    assert not np.any(c.actions) and c.last_velocity is None  # the next tick starts from the base's motion
+
+
+def test_controller_resumes_from_the_bases_motion_after_a_pause(su_deploy):
+    """A history from before a pause would be one tick's acceleration of the whole change since
+    (here 62.5 m/s^2) and blend old actions into the command; the controller starts again from the
+    base's velocity instead, with no acceleration, as after a watchdog stop."""
+    c = deploy.Controller(su_deploy, backend="numpy", safety=SafetyConfig(enabled=False))
+    seen = []
+    c.policy = lambda obs: (seen.append(np.asarray(obs, np.float64)), np.array([0.1, 0.0, 0.0]))[1]
+    layout = {k: slice(*v) for k, v in c.manifest["observation_layout"].items()}
+    weights = np.asarray(c.deployment["action"]["interpolation_weights"])
+
+    def tick(t, vx):
+        x = dataclasses.replace(
+            _good(), velocity=np.array([vx, 0.0, 0.0]), scan_stamp=t, odom_stamp=t, users_stamp=t
+        )
+        return c.tick(x, now=t)
+
+    tick(10.0, 0.2)  # the first tick starts from the base's 0.2 m/s
+    np.testing.assert_allclose(seen[-1][layout["robot_acceleration"]], 0.0)
+    np.testing.assert_allclose(seen[-1][layout["previous_action"]], [0.2 / 3.0, 0.0, 0.0])
+    tick(10.02, 0.25)  # 50 Hz: differenced, and the policy's own action is the history
+    np.testing.assert_allclose(seen[-1][layout["robot_acceleration"]], [2.5, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(seen[-1][layout["previous_action"]], [0.1, 0.0, 0.0])
+    out = tick(11.0, 1.5)  # ticks resume after ~1 s in which something else drove the base
+    np.testing.assert_allclose(seen[-1][layout["robot_acceleration"]], 0.0)
+    np.testing.assert_allclose(seen[-1][layout["previous_action"]], [0.5, 0.0, 0.0])
+    expected = (weights[0] * 0.1 + (weights[1] + weights[2]) * 0.5) * 3.0
+    assert out.policy[0] == pytest.approx(expected) and expected > 0.5 * 1.5
+    tick(11.04, 1.6)  # one tick lost to jitter is not a pause: differenced as before
+    np.testing.assert_allclose(seen[-1][layout["robot_acceleration"]], [5.0, 0.0, 0.0], atol=1e-9)
+
+
+def test_the_evaluations_policy_resumes_as_the_controller_does(su_deploy, su_env):
+    """The engine's Chase skips the policy while Escape, Inform or Haptic drive the base; on its
+    next call it takes the history the deployed controller takes after a pause."""
+    from envs.evaluation import Policy, PolicyState
+    from methd_jax.evaluation.methods import Context
+
+    method = Policy(su_env, policy=None)
+    data = su_env.robot.init(jnp.array([1.0, 2.0, 0.4]))
+    world_velocity = jnp.array([*jnp.asarray(observation.rotate(0.4, np.array([1.5, -4.0]))), 0.5])
+    data = data.replace(qvel=data.qvel.at[:3].set(world_velocity.astype(data.qvel.dtype)))
+    stale = PolicyState(jnp.full((3, 3), 0.7), jnp.ones(3), jnp.float32(0.0), jnp.zeros(2), jnp.int32(10))
+
+    def context(step):
+        return Context(data, None, None, None, None, None, jnp.int32(step), None, None)
+
+    kept = method.resume(stale, context(11))
+    np.testing.assert_array_equal(kept.actions, stale.actions)
+    np.testing.assert_array_equal(kept.velocity, stale.velocity)
+    resumed = method.resume(stale, context(60))
+    c = deploy.Controller(su_deploy, backend="numpy")
+    c.resume(np.asarray(robot_lib.velocity(data), np.float64))
+    np.testing.assert_allclose(resumed.actions[:2], c.actions, atol=1e-6)
+    np.testing.assert_allclose(resumed.actions[0], [0.5, -1.0, 0.25], atol=1e-6)  # -4 m/s clipped
+    np.testing.assert_allclose(resumed.velocity, c.last_velocity, atol=1e-6)
+    first = method.resume(method.init(), context(0))  # an episode's first call: from the base's motion
+    np.testing.assert_allclose(first.actions, resumed.actions, atol=1e-6)
+
+
+def test_the_evaluations_guide_keeps_watching_while_the_engine_drives():
+    """GuideRL advances u_w on the engine's idle steps as it does in Chase (the deployed GuideRL node
+    runs whatever drives the base); an SU policy has nothing to watch."""
+    from envs.evaluation import Policy
+    from methd_jax.evaluation.methods import Context
+
+    config = NavConfig(num_users=2, motion="sample", split="all", lab=True)
+    env = NavEnv(config, guide_policy=lambda obs: jnp.ones(1))
+    method = Policy(env, policy=None)
+    users = jax.vmap(env.bank.at, (0, None))(jnp.array([0, 1]), jnp.int32(50))
+    ctx = Context(
+        env.robot.init(jnp.zeros(3)),
+        jnp.zeros(3),
+        users,
+        jnp.ones(2, bool),
+        floors.lab(),
+        None,
+        jnp.int32(5),
+        jax.random.key(0),
+        None,
+    )
+    state = method.init()
+    for _ in range(3):
+        state = method.idle(state, ctx)
+    assert float(state.u_w) == pytest.approx(0.15)  # three steps of GuideRL's largest turn
+    np.testing.assert_array_equal(state.guide_actions, [1.0, 1.0])
+    np.testing.assert_array_equal(state.actions, method.init().actions)  # the base's history is Chase's
+    su = Policy(NavEnv(NavConfig(motion="sample", split="all", lab=True)), policy=None)
+    start = su.init()
+    assert su.idle(start, ctx) is start
 
 
 def _tampered(src, tmp_path, edit=None, files=None):

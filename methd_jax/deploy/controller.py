@@ -56,6 +56,11 @@ class Command:
     reason: str | None
 
 
+PAUSE = 3.0
+"""Control periods between two ticks beyond which the controller was paused (:meth:`Controller.resume`);
+a tick or two lost to jitter is not a pause."""
+
+
 @dataclasses.dataclass(frozen=True)
 class WatchdogConfig:
     max_age: float = 0.2
@@ -104,9 +109,21 @@ class Controller:
         self.reset()
 
     def reset(self):
-        """Forget the action history and the last velocity (as at an episode's start)."""
+        """Forget the action history and the last velocity: the next tick starts them from the
+        base's own motion (see :meth:`resume`)."""
         self.actions = np.zeros((2, 3))
-        self.last_velocity = np.zeros(3)
+        self.last_velocity: np.ndarray | None = None
+        self.last_tick: float | None = None
+
+    def resume(self, velocity: np.ndarray):
+        """Start the history from the base's robot-frame ``velocity``: the previous actions those
+        that command it and no acceleration this tick. Training never pauses its policy; a history
+        from before a pause (a watchdog stop, or a behaviour that drove the base meanwhile) would
+        feed the whole change since as one tick's acceleration and blend the actions of back then
+        into the command. At rest this is the zero history of an episode's start."""
+        scale = np.asarray(self.deployment["action"]["scale"], np.float64)
+        self.actions = np.tile(np.clip(velocity / scale, -1.0, 1.0), (2, 1))
+        self.last_velocity = velocity
 
     # -- the watchdog --------------------------------------------------------------------------
 
@@ -168,6 +185,10 @@ class Controller:
             if problem is not None:
                 return self._stop(f"watchdog:{problem}")
             velocity = np.asarray(x.velocity, np.float64)
+            paused = now is not None and self.last_tick is not None and now - self.last_tick > PAUSE * self.dt
+            if self.last_velocity is None or paused:
+                self.resume(velocity)
+            self.last_tick = now
             accel = (
                 np.asarray(x.acceleration, np.float64)
                 if x.acceleration is not None

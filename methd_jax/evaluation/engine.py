@@ -437,12 +437,15 @@ class Engine:
         ).astype(jnp.int32)
 
         # what drives the base
+        ctx = Context(s.robot, pose, users, present, self.floor, self.grid, s.t, k_method, s.scan)
+
         def chase(ms):
-            ctx = Context(s.robot, pose, users, present, self.floor, self.grid, s.t, k_method, s.scan)
             return self.method.chase(ms, ctx)
 
+        watch = getattr(self.method, "idle", lambda ms, ctx: ms)
+
         def idle(ms):
-            return ms, Chase(jnp.zeros(3), jnp.zeros(3), jnp.bool_(False))
+            return watch(ms, ctx), Chase(jnp.zeros(3), jnp.zeros(3), jnp.bool_(False))
 
         method_state, order = jax.lax.cond(mode == CHASE, chase, idle, s.method)
         navigating = (mode == HAPTIC) | (mode == ESCAPE) | ((mode == CHASE) & order.navigate)

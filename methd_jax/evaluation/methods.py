@@ -6,7 +6,9 @@ A method is an object with
 - ``init() -> state``: its per-episode state (a pytree),
 - ``chase(state, ctx: Context) -> (state, Chase)``: called every 50 Hz step while the behaviour
   engine is in Chase. :class:`Chase` either carries a robot-frame velocity ``command`` or asks the
-  engine's navigator to drive to ``goal`` (``navigate``; the engine replans when the goal moves).
+  engine's navigator to drive to ``goal`` (``navigate``; the engine replans when the goal moves),
+- optionally ``idle(state, ctx: Context) -> state``: called every other step (the engine drives the
+  base), for what a method keeps watching meanwhile.
 
 :class:`Static` and :class:`Heuristic` are the thesis's baselines (§5.3). A trained policy is a
 method too, :class:`envs.evaluation.Policy`: it needs the environment's own observation and action
