@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -796,6 +797,32 @@ def test_cli_no_su_runs_the_multi_user_rows_alone(monkeypatch, tmp_path):
     with pytest.raises(Stop):  # without it the SU baselines are there
         evaluate.main(["--motion", "sample", "--no-mu", "--no-pretrained", "--quiet", "--out", str(tmp_path)])
     assert seen["su"] == ["Heuristic", "Static"] and seen["mu"] == []
+
+
+def test_cli_no_mu_measures_guide_only_when_asked(monkeypatch, tmp_path):
+    """GuideRL belongs to the multi-user scenario: ``--no-mu`` leaves the shipped one alone (its
+    accuracy on 300 trajectories is minutes of pairs), and measures one that ``--guide`` names."""
+    from train import evaluate
+
+    class Stop(Exception):
+        pass
+
+    def fake_evaluate(*args, **kwargs):
+        raise Stop
+
+    guides = []
+    monkeypatch.setattr(evaluate, "evaluate", fake_evaluate)
+    monkeypatch.setattr(evaluate, "load_policy", lambda *a, **k: None)
+    monkeypatch.setattr(evaluate, "load_guide", lambda run: guides.append(str(run)))
+    with pytest.raises(Stop):
+        evaluate.main(["--motion", "sample", "--no-mu", "--quiet", "--out", str(tmp_path)])
+    assert guides == []
+    with pytest.raises(Stop):
+        evaluate.main(["--motion", "sample", "--no-mu", "--guide", "G", "--quiet", "--out", str(tmp_path)])
+    assert guides == ["G"]
+    with pytest.raises(Stop):  # the multi-user scenario brings the shipped one
+        evaluate.main(["--motion", "sample", "--no-su", "--quiet", "--out", str(tmp_path)])
+    assert len(guides) == 2 and Path(guides[1]).name == "guide"
 
 
 def test_split_all_replays_every_trajectory(monkeypatch, tmp_path):

@@ -363,7 +363,11 @@ def main(argv=None) -> int:
         "--mu-offset", type=int, default=50, help="user 2's trajectory index offset (default 50)"
     )
     parser.add_argument("--no-su", action="store_true", help="skip the single-user scenario")
-    parser.add_argument("--no-mu", action="store_true", help="skip the multi-user scenario")
+    parser.add_argument(
+        "--no-mu",
+        action="store_true",
+        help="skip the multi-user scenario (and GuideRL's accuracy, unless --guide names one)",
+    )
     parser.add_argument("--no-heuristic", action="store_true", help="skip the Heuristic baseline")
     parser.add_argument(
         "--no-pretrained",
@@ -418,7 +422,8 @@ def main(argv=None) -> int:
             raise ConfigError("--mu and --no-mu contradict each other")
         mu_run = args.mu or (None if args.no_pretrained or args.no_mu else shipped("nav"))
         guide = args.guide or (_dependencies(args.mu).get("guide") if args.mu else None)
-        guide = guide or (None if args.no_pretrained else shipped("guide"))
+        # GuideRL belongs to the multi-user scenario: --no-mu measures it only when --guide names one
+        guide = guide or (None if args.no_pretrained or args.no_mu else shipped("guide"))
         if guide:
             load_guide(guide)  # a bad --guide is refused before the long evaluation
         if mu_run:
