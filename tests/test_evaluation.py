@@ -716,7 +716,20 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys, full):
     # MU and the Heuristic are left out here (test_pretrained runs MU Static beside the shipped pair,
     # the baselines test the Heuristic, notebook 04 runs both through the CLI with -m slow): engines
     # fewer to compile
-    args = ["--motion", "sample", "--su", str(run_dir), "--no-mu", "--no-heuristic", "--out", str(out)]
+    # --no-mu measures GuideRL only when --guide names one: the shipped one here
+    guide = str(evaluate.shipped("guide"))
+    args = [
+        "--motion",
+        "sample",
+        "--su",
+        str(run_dir),
+        "--no-mu",
+        "--no-heuristic",
+        "--guide",
+        guide,
+        "--out",
+        str(out),
+    ]
     extra = ["--procedural", "6"] if full else ["--no-safety"]
     assert evaluate.main([*args, "--quiet", *extra]) == 0
     text = capsys.readouterr().out
@@ -742,7 +755,7 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys, full):
     for name in ("table.md", "escapes.png", "travelled.png", "distance_to_hip.png", "t_pos.png"):
         assert (out / name).stat().st_size > 1000, name
     assert "SU DRL (thesis)" in (out / "table.md").read_text()
-    # the shipped GuideRL policy's accuracy on the (4 sample) trajectories' ordered pairs
+    # the named GuideRL policy's accuracy on the (4 sample) trajectories' ordered pairs
     g = data["guide"]
     assert g["pairs"] == 12 and 0.0 <= g["accuracy_early"] <= 1.0 and 0.0 <= g["accuracy"] <= 1.0
     assert g["early_s"] == evaluate.EARLY == 1.0
