@@ -61,17 +61,24 @@ class Policy:
         that pointed wherever the policy drove before, often at the user it escaped from; the
         navigator likewise ramps from the base's velocity when it takes over from a policy."""
         velocity = robot_lib.velocity(ctx.robot)
-        robot = self.env.config.robot
-        scale = jnp.array([robot.max_speed, robot.max_speed, robot.max_yaw_rate])
-        moving = jnp.broadcast_to(jnp.clip(velocity / scale, -1.0, 1.0), state.actions.shape)
+        moving = jnp.broadcast_to(jnp.clip(velocity / self.env.action_scale, -1.0, 1.0), state.actions.shape)
         gap = ctx.step != state.step + 1
         return state.replace(
             actions=jnp.where(gap, moving, state.actions),
             velocity=jnp.where(gap, velocity, state.velocity),
         )
 
-    def _world(self, state: PolicyState, ctx: Context, key: jax.Array) -> World:
-        """The environment's world for this step, its goal updated (GuideRL run once for NavRL)."""
+    def idle(self, state: PolicyState, ctx: Context) -> PolicyState:
+        """A step the engine drives the base: GuideRL goes on watching the users, as the deployed
+        GuideRL node does whatever drives the base, so that its goal is current when Chase resumes."""
+        if self.env.config.num_users != 2:
+            return state
+        u_w, guide_actions = self.env.guide_step(ctx.users, state.u_w, state.guide_actions)
+        return state.replace(u_w=u_w, guide_actions=guide_actions)
+
+    def chase(self, state: PolicyState, ctx: Context):
+        state = self.resume(state, ctx)
+        k_goal, k_obs = jax.random.split(ctx.key)
         u = self.env.config.num_users
         world = World(
             robot=ctx.robot,
@@ -93,20 +100,8 @@ class Policy:
             contacts=jnp.int32(0),
             key=ctx.key,
         )
-        return self.env.update_goal(world, ctx.users, key, scripted_step=True)
+        world = self.env.update_goal(world, ctx.users, k_goal, scripted_step=True)
 
-    def idle(self, state: PolicyState, ctx: Context) -> PolicyState:
-        """A step the engine drives the base: GuideRL goes on watching the users, as the deployed
-        GuideRL node does whatever drives the base, so that its goal is current when Chase resumes."""
-        if self.env.config.num_users != 2:
-            return state
-        world = self._world(state, ctx, jax.random.split(ctx.key)[0])
-        return state.replace(u_w=world.u_w, guide_actions=world.guide_actions)
-
-    def chase(self, state: PolicyState, ctx: Context):
-        state = self.resume(state, ctx)
-        k_goal, k_obs = jax.random.split(ctx.key)
-        world = self._world(state, ctx, k_goal)
         obs, _, _ = self.env.observe(world, state.actions[0], k_obs, ctx.users)
         action = jnp.clip(self.policy(obs), -1.0, 1.0)
         command = self.env.command(action, state.actions[:2])

@@ -518,11 +518,7 @@ class NavEnv(Env):
         u_w, target, guide_actions = w.u_w, w.goal_target, w.guide_actions
         if cfg.num_users == 2:
             if self.guide_policy is not None:
-                wrist = users["wrist_height"] if self._guide_wrist else None
-                obs = guide_observation(users["vel_local"], users["acc_local"], u_w, guide_actions, wrist)
-                act = jnp.clip(jnp.reshape(self.guide_policy(obs), ()), -1.0, 1.0)
-                u_next = jnp.clip(u_w + GUIDE_MAX_DELTA * act, -1.0, 1.0)
-                guide_actions = jnp.stack([act, guide_actions[0]])
+                u_next, guide_actions = self.guide_step(users, u_w, guide_actions)
             else:
                 k1, k2 = jax.random.split(key)
                 switch = scripted_step & (
@@ -542,6 +538,21 @@ class NavEnv(Env):
         goal = jnp.where(requested, hips[w.requester], goal)
         goal = self._reachable(w.floor, goal, users)
         return w.replace(goal=goal, u_w=u_w, goal_target=target, guide_actions=guide_actions)
+
+    def guide_step(
+        self, users: dict, u_w: jax.Array, guide_actions: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
+        """One step of the GuideRL goal source: (u_w, GuideRL's last two actions) after it watched
+        ``users`` (two users' features of :meth:`MotionBank.at`)."""
+        wrist = users["wrist_height"] if self._guide_wrist else None
+        obs = guide_observation(users["vel_local"], users["acc_local"], u_w, guide_actions, wrist)
+        act = jnp.clip(jnp.reshape(self.guide_policy(obs), ()), -1.0, 1.0)
+        return jnp.clip(u_w + GUIDE_MAX_DELTA * act, -1.0, 1.0), jnp.stack([act, guide_actions[0]])
+
+    @property
+    def action_scale(self) -> jax.Array:
+        """(vx, vy, wz) of a policy action of 1 (eqs. 4.19-4.21)."""
+        return self._scale
 
     def _reachable(self, floor: Floor, goal: jax.Array, users: dict) -> jax.Array:
         """``goal`` moved to the nearest clear point when ``goal_clearance`` is set (yaw kept)."""
