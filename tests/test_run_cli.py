@@ -179,6 +179,30 @@ def test_resume_falls_back_past_a_damaged_checkpoint(small_run, tmp_path, capsys
     assert "restores into this run's configuration" in err and len(err.strip().splitlines()) == 1
 
 
+def test_resume_with_more_timesteps_carries_a_finished_run_on(small_run, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(small_run, run)  # finished: iterations 1 and 2 of timesteps=8
+    before = (run / "metrics.jsonl").read_text()
+    for argv, message in (
+        (["timesteps=4"], "can extend a run, not shorten it: timesteps=4 is below the run's timesteps=8"),
+        (["num_envs=4"], "timesteps=N alone may extend it"),
+        (["timesteps=16", "seed=1"], "timesteps=N alone may extend it"),
+    ):
+        assert main(["--resume", str(run), *argv, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+    assert (run / "metrics.jsonl").read_text() == before  # refused before anything is written
+    assert main(["--resume", str(run), "timesteps=16", "--quiet"]) == 0
+    rows = [json.loads(r) for r in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in rows] == [1, 2, 3, 4]
+    assert (run / "metrics.jsonl").read_text().startswith(before)  # the first two rows as they were
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["config"]["timesteps"] == 16 and meta["overrides"][-1] == "timesteps=16"
+    assert export.load(run).manifest["trained"]["iteration"] == 4
+    assert main(["--resume", str(run), "--quiet"]) == 0  # the stored length is now 16: nothing to do
+    assert len((run / "metrics.jsonl").read_text().splitlines()) == 4
+
+
 def test_init_from_starts_from_the_other_runs_learned_state(small_run, tmp_path, capsys):
     import jax
     from flax import traverse_util

@@ -5,7 +5,8 @@ the resolved configuration), ``metrics.jsonl`` (one line of scalars per iteratio
 files under ``tb/`` (every reward term, loss and rate), ``reward_curve.png`` (mean episode return on a
 symlog axis, as in the thesis's figures), orbax checkpoints under ``checkpoints/``, the exported
 policy under ``policy/`` and a ``README.md`` that says what was trained and how to use it.
-``--resume RUN_DIR`` continues from the newest checkpoint exactly where the run stopped.
+``--resume RUN_DIR`` continues from the newest checkpoint exactly where the run stopped;
+``--resume RUN_DIR timesteps=N`` carries a run on past its configured length.
 """
 
 from __future__ import annotations
@@ -615,6 +616,26 @@ def load_config(run_dir: str | Path) -> tuple[str, list[str], RunConfig]:
         ) from None
 
 
+def _extended(config: RunConfig, overrides: list[str]) -> RunConfig:
+    """``config`` with a longer ``timesteps`` if ``overrides`` asks for one, the only option a
+    resumed run may change: more iterations of the same run continue its optimiser, its critic and
+    its normalisers, where a new run from its export would refit and restart them."""
+    if not overrides:
+        return config
+    if any(not o.startswith("timesteps=") for o in overrides) or len(overrides) > 1:
+        raise ConfigError(
+            "--resume continues a run as configured (timesteps=N alone may extend it); "
+            "start a new run to change options"
+        )
+    longer = apply_overrides(config, overrides)
+    if longer.timesteps < config.timesteps:
+        raise ConfigError(
+            f"--resume can extend a run, not shorten it: {overrides[0]} is below the run's "
+            f"timesteps={config.timesteps}"
+        )
+    return longer
+
+
 def main(argv=None) -> int:
     parser = OneLineParser(
         prog="python -m train.run",
@@ -627,7 +648,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="options to change (listed below)")
     parser.add_argument("--out", type=Path, help="run folder (default: runs/<preset>-<date>-<time>)")
-    parser.add_argument("--resume", type=Path, metavar="RUN_DIR", help="continue the run in RUN_DIR")
+    parser.add_argument(
+        "--resume",
+        type=Path,
+        metavar="RUN_DIR",
+        help="continue the run in RUN_DIR (with timesteps=N: to a new, larger length)",
+    )
     parser.add_argument(
         "--max-minutes",
         type=float,
@@ -660,9 +686,11 @@ def main(argv=None) -> int:
         if args.max_minutes is not None and not args.max_minutes > 0:
             raise ConfigError(f"--max-minutes must be positive, got {args.max_minutes}")
         if args.resume is not None:
-            if overrides or args.out is not None:
-                raise ConfigError("--resume continues a run as configured; start a new run to change options")
-            name, overrides, config = load_config(args.resume)
+            if args.out is not None:
+                raise ConfigError("--resume continues a run in its own folder; --out starts a new one")
+            name, stored, config = load_config(args.resume)
+            config = _extended(config, overrides)
+            overrides = [*stored, *overrides]
             run_dir = args.resume
         else:
             name = args.preset
