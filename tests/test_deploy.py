@@ -624,8 +624,10 @@ def test_controller_resumes_from_the_bases_motion_after_a_pause(su_deploy):
     np.testing.assert_allclose(seen[-1][layout["previous_action"]], [0.5, 0.0, 0.0])
     expected = (weights[0] * 0.1 + (weights[1] + weights[2]) * 0.5) * 3.0
     assert out.policy[0] == pytest.approx(expected) and expected > 0.5 * 1.5
-    tick(11.04, 1.6)  # one tick lost to jitter is not a pause: differenced as before
-    np.testing.assert_allclose(seen[-1][layout["robot_acceleration"]], [5.0, 0.0, 0.0], atol=1e-9)
+    tick(11.04, 1.6)  # one tick lost is not a pause: differenced over the two periods that passed
+    np.testing.assert_allclose(seen[-1][layout["robot_acceleration"]], [2.5, 0.0, 0.0], atol=1e-9)
+    tick(11.053, 1.65)  # a tick 3 ms early is still one period on
+    np.testing.assert_allclose(seen[-1][layout["robot_acceleration"]], [2.5, 0.0, 0.0], atol=1e-9)
 
 
 def test_the_evaluations_policy_resumes_as_the_controller_does(su_deploy, su_env):

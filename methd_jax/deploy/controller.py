@@ -58,7 +58,7 @@ class Command:
 
 PAUSE = 3.0
 """Control periods between two ticks beyond which the controller was paused (:meth:`Controller.resume`);
-a tick or two lost to jitter is not a pause."""
+a tick or two lost to jitter is not a pause (the velocity is differenced over the periods that passed)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,14 +185,17 @@ class Controller:
             if problem is not None:
                 return self._stop(f"watchdog:{problem}")
             velocity = np.asarray(x.velocity, np.float64)
-            paused = now is not None and self.last_tick is not None and now - self.last_tick > PAUSE * self.dt
-            if self.last_velocity is None or paused:
+            elapsed = None if now is None or self.last_tick is None else now - self.last_tick
+            if self.last_velocity is None or (elapsed is not None and elapsed > PAUSE * self.dt):
                 self.resume(velocity)
             self.last_tick = now
+            # over the whole periods since the last tick: a lost tick's change spans two, and jitter
+            # within a period is the loop's timing, not the base's
+            periods = 1 if elapsed is None else max(1, round(elapsed / self.dt))
             accel = (
                 np.asarray(x.acceleration, np.float64)
                 if x.acceleration is not None
-                else (velocity - self.last_velocity) / self.dt
+                else (velocity - self.last_velocity) / (periods * self.dt)
             )
             obs = observation.observe(
                 self.deployment,
