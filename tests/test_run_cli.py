@@ -187,6 +187,7 @@ def test_resume_with_more_timesteps_carries_a_finished_run_on(small_run, tmp_pat
         (["timesteps=4"], "can extend a run, not shorten it: timesteps=4 is below the run's timesteps=8"),
         (["num_envs=4"], "timesteps=N alone may extend it"),
         (["timesteps=16", "seed=1"], "timesteps=N alone may extend it"),
+        (["su_cpu"], "--resume continues the run's own preset; leave out 'su_cpu'"),
     ):
         assert main(["--resume", str(run), *argv, "--quiet"]) == 2
         err = capsys.readouterr().err

@@ -643,9 +643,7 @@ def main(argv=None) -> int:
         epilog=_help_epilog(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument(
-        "preset", nargs="?", default="quick", help="one of: " + ", ".join(PRESETS) + " (default quick)"
-    )
+    parser.add_argument("preset", nargs="?", help="one of: " + ", ".join(PRESETS) + " (default quick)")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="options to change (listed below)")
     parser.add_argument("--out", type=Path, help="run folder (default: runs/<preset>-<date>-<time>)")
     parser.add_argument(
@@ -674,9 +672,9 @@ def main(argv=None) -> int:
     )
     args = parser.parse_args(argv)
     overrides = list(args.overrides)
-    if "=" in args.preset:  # `python -m train.run num_envs=8`: the preset was left out
+    if args.preset is not None and "=" in args.preset:  # `python -m train.run num_envs=8`: no preset
         overrides.insert(0, args.preset)
-        args.preset = "quick"
+        args.preset = None
     try:
         cluster_flags = (args.coordinator, args.num_processes, args.process_id)
         if args.distributed or any(x is not None for x in cluster_flags):
@@ -688,12 +686,14 @@ def main(argv=None) -> int:
         if args.resume is not None:
             if args.out is not None:
                 raise ConfigError("--resume continues a run in its own folder; --out starts a new one")
+            if args.preset is not None:
+                raise ConfigError(f"--resume continues the run's own preset; leave out {args.preset!r}")
             name, stored, config = load_config(args.resume)
             config = _extended(config, overrides)
             overrides = [*stored, *overrides]
             run_dir = args.resume
         else:
-            name = args.preset
+            name = args.preset or "quick"
             config = apply_overrides(preset(name), overrides)
             run_dir = args.out or Path("runs") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
             if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
