@@ -1186,6 +1186,30 @@ def test_guide_goal_refuses_what_it_cannot_use(coarse_deploy):
         guide.GuideGoal(coarse_deploy, backend="numpy")
 
 
+def test_guide_goal_differences_over_the_periods_that_passed(tmp_path):
+    """As the Controller: with ``now`` the users' velocities are differenced over the whole control
+    periods since the last tick (a lost tick is two), and not across a pause."""
+    from envs.guide import GuideConfig, GuideEnv
+    from methd_jax.deploy import guide
+
+    env = GuideEnv(GuideConfig(motion="sample", split="all"))
+    export_random_policy(tmp_path / "g", env, "guide", networks.GuideActorCritic(), seed=4)
+    goal = guide.GuideGoal(export.export_deployment(tmp_path / "g", log=lambda *a: None), backend="numpy")
+    assert goal.dt == pytest.approx(0.02)
+
+    def acceleration(t, vx):  # both users face +x, so their own frame is the world's
+        users = np.array([[0.0, 0.0, 0.0, vx, 0.0, 0.0], [3.0, 0.0, 0.0, vx, 0.0, 0.0]])
+        return goal.observation(users, now=t)[6:12].reshape(2, 3)
+
+    np.testing.assert_allclose(acceleration(1.0, 0.5), 0.0)  # the first tick: none
+    np.testing.assert_allclose(acceleration(1.02, 0.55)[:, 0], 2.5, atol=1e-6)
+    np.testing.assert_allclose(acceleration(1.06, 0.65)[:, 0], 2.5, atol=1e-6)  # a tick lost
+    np.testing.assert_allclose(acceleration(1.077, 0.7)[:, 0], 2.5, atol=1e-6)  # 3 ms early
+    np.testing.assert_allclose(acceleration(2.0, 1.5), 0.0)  # after a pause: none
+    goal.reset()
+    np.testing.assert_allclose(acceleration(2.02, 1.0), 0.0)
+
+
 def test_guide_goal_feeds_a_wrist_policy_the_wrists(tmp_path):
     """A GuideRL policy trained with the wrists (``GuideConfig.wrist``): GuideGoal appends the
     users' wrist heights to eq. 4.24's inputs as the training environment does, and refuses a tick

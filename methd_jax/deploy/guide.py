@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from methd_jax.deploy.controller import PAUSE
 from methd_jax.deploy.observation import rotate, wrap_angle
 from methd_jax.deploy.policy import DeployError, load_manifest, load_policy
 
@@ -56,20 +57,31 @@ class GuideGoal:
         self.u_w = 0.0
         self.actions = np.zeros(2)
         self.last_velocity: np.ndarray | None = None
+        self.last_tick: float | None = None
 
     def observation(
-        self, users: np.ndarray, acceleration: np.ndarray | None = None, wrist: np.ndarray | None = None
+        self,
+        users: np.ndarray,
+        acceleration: np.ndarray | None = None,
+        wrist: np.ndarray | None = None,
+        now: float | None = None,
     ) -> np.ndarray:
         """Eq. 4.24 from ``users`` (2, 6): x, y, yaw, vx, vy, wz in the world; ``acceleration``
-        (2, 3) likewise in the world, or None to difference successive velocities; ``wrist`` (2,):
-        each user's wrist height minus head height in m, which a policy with :attr:`wrist` needs."""
+        (2, 3) likewise in the world, or None to difference successive velocities (over the whole
+        control periods since the last call if ``now``, in s, is given; none after a pause of more
+        than :data:`~methd_jax.deploy.controller.PAUSE` periods); ``wrist`` (2,): each user's wrist
+        height minus head height in m, which a policy with :attr:`wrist` needs."""
         users = np.asarray(users, np.float64)
         if users.shape != (2, 6) or not np.isfinite(users).all():
             raise DeployError(f"users must be a finite (2, 6) array, got shape {users.shape}")
         velocity = users[:, 3:]
+        elapsed = None if now is None or self.last_tick is None else now - self.last_tick
+        self.last_tick = now
         if acceleration is None:
-            last = velocity if self.last_velocity is None else self.last_velocity
-            acceleration = (velocity - last) / self.dt
+            paused = elapsed is not None and elapsed > PAUSE * self.dt
+            last = velocity if self.last_velocity is None or paused else self.last_velocity
+            periods = 1 if elapsed is None else max(1, round(elapsed / self.dt))
+            acceleration = (velocity - last) / (periods * self.dt)
         acceleration = np.asarray(acceleration, np.float64)
         if acceleration.shape != (2, 3) or not np.isfinite(acceleration).all():
             raise DeployError(f"acceleration must be a finite (2, 3) array, got shape {acceleration.shape}")
@@ -97,13 +109,14 @@ class GuideGoal:
         hips: np.ndarray,
         acceleration: np.ndarray | None = None,
         wrist: np.ndarray | None = None,
+        now: float | None = None,
     ) -> np.ndarray:
         """One control tick: u_w updated from the users (see :meth:`observation`); returns the goal
         between ``hips`` (2, 3) (x, y, yaw of each user's HIP in the world)."""
         hips = np.asarray(hips, np.float64)
         if hips.shape != (2, 3) or not np.isfinite(hips).all():
             raise DeployError(f"hips must be a finite (2, 3) array, got shape {hips.shape}")
-        obs = self.observation(users, acceleration, wrist)
+        obs = self.observation(users, acceleration, wrist, now)
         action = float(np.clip(np.asarray(self.policy(obs)).reshape(-1)[0], -1.0, 1.0))
         self.u_w = float(np.clip(self.u_w + self.max_delta * action, -1.0, 1.0))
         self.actions = np.array([action, self.actions[0]])
