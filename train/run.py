@@ -622,7 +622,7 @@ def _extended(config: RunConfig, overrides: list[str]) -> RunConfig:
     its normalisers, where a new run from its export would refit and restart them."""
     if not overrides:
         return config
-    if any(not o.startswith("timesteps=") for o in overrides) or len(overrides) > 1:
+    if [o.partition("=")[0].strip() for o in overrides] != ["timesteps"]:
         raise ConfigError(
             "--resume continues a run as configured (timesteps=N alone may extend it); "
             "start a new run to change options"

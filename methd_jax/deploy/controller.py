@@ -61,6 +61,16 @@ PAUSE = 3.0
 a tick or two lost to jitter is not a pause (the velocity is differenced over the periods that passed)."""
 
 
+def periods_since(last_tick: float | None, now: float | None, dt: float) -> int | None:
+    """Whole control periods of ``dt`` from ``last_tick`` to ``now`` (1 when either is unknown; jitter
+    within a period is the loop's timing, not the motion's), or None after a pause (:data:`PAUSE`)."""
+    if now is None or last_tick is None:
+        return 1
+    if now - last_tick > PAUSE * dt:
+        return None
+    return max(1, round((now - last_tick) / dt))
+
+
 @dataclasses.dataclass(frozen=True)
 class WatchdogConfig:
     max_age: float = 0.2
@@ -185,13 +195,11 @@ class Controller:
             if problem is not None:
                 return self._stop(f"watchdog:{problem}")
             velocity = np.asarray(x.velocity, np.float64)
-            elapsed = None if now is None or self.last_tick is None else now - self.last_tick
-            if self.last_velocity is None or (elapsed is not None and elapsed > PAUSE * self.dt):
-                self.resume(velocity)
+            periods = periods_since(self.last_tick, now, self.dt)
             self.last_tick = now
-            # over the whole periods since the last tick: a lost tick's change spans two, and jitter
-            # within a period is the loop's timing, not the base's
-            periods = 1 if elapsed is None else max(1, round(elapsed / self.dt))
+            if self.last_velocity is None or periods is None:
+                self.resume(velocity)
+                periods = 1
             accel = (
                 np.asarray(x.acceleration, np.float64)
                 if x.acceleration is not None

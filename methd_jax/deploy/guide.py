@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from methd_jax.deploy.controller import PAUSE
+from methd_jax.deploy.controller import periods_since
 from methd_jax.deploy.observation import rotate, wrap_angle
 from methd_jax.deploy.policy import DeployError, load_manifest, load_policy
 
@@ -75,13 +75,13 @@ class GuideGoal:
         if users.shape != (2, 6) or not np.isfinite(users).all():
             raise DeployError(f"users must be a finite (2, 6) array, got shape {users.shape}")
         velocity = users[:, 3:]
-        elapsed = None if now is None or self.last_tick is None else now - self.last_tick
+        periods = periods_since(self.last_tick, now, self.dt)
         self.last_tick = now
         if acceleration is None:
-            paused = elapsed is not None and elapsed > PAUSE * self.dt
-            last = velocity if self.last_velocity is None or paused else self.last_velocity
-            periods = 1 if elapsed is None else max(1, round(elapsed / self.dt))
-            acceleration = (velocity - last) / (periods * self.dt)
+            fresh = self.last_velocity is None or periods is None
+            acceleration = (
+                np.zeros_like(velocity) if fresh else (velocity - self.last_velocity) / (periods * self.dt)
+            )
         acceleration = np.asarray(acceleration, np.float64)
         if acceleration.shape != (2, 3) or not np.isfinite(acceleration).all():
             raise DeployError(f"acceleration must be a finite (2, 3) array, got shape {acceleration.shape}")
