@@ -300,6 +300,76 @@ def segment_clear(grid: Costmap, start: jax.Array, end: jax.Array, skip: float =
     return jnp.all(ok)
 
 
+@dataclasses.dataclass(frozen=True)
+class WaypointConfig:
+    """Where a policy that drives straight at its goal is pointed instead (:func:`waypoint`)."""
+
+    clearance: float = 0.6
+    """A straight way is open when every point of it keeps this far from obstacles and walls, m: half
+    the base's width (0.455 m) and a margin, so the base fits along it sideways or turned."""
+    skip: float = 0.3
+    """The first metres of a way are not checked (the base may stand closer than ``clearance``)."""
+    reach: float = 3.0
+    """Candidate waypoints lie on rings 0.5 m to this far from the base, m."""
+    spacing: float = 0.25
+    """Distance between the rings, m."""
+    directions: int = 24
+    """Candidates per ring."""
+    replan_period: float = 1.0
+    """A plan (:func:`distance_field`) is kept this long while the goal moves little, s."""
+    replan_distance: float = 0.25
+    """... and replaced at once when the goal moves this far from the one it was planned for, m."""
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not value > 0:
+                raise ValueError(f"WaypointConfig.{f.name} must be positive, got {value}")
+        if self.reach < 0.5:
+            raise ValueError(f"WaypointConfig.reach must be at least 0.5 m, got {self.reach}")
+
+    def candidates(self) -> np.ndarray:
+        """(K, 2) offsets of the candidate waypoints from the base, nearest ring first."""
+        radii = np.arange(0.5, self.reach + 1e-6, self.spacing)
+        ang = 2.0 * np.pi * np.arange(self.directions) / self.directions
+        ring = np.stack([np.cos(ang), np.sin(ang)], -1)
+        return (radii[:, None, None] * ring[None]).reshape(-1, 2).astype(np.float32)
+
+
+def segment_open(grid: Costmap, start: jax.Array, end: jax.Array, clearance: float, skip: float) -> jax.Array:
+    """True when every point of the segment beyond its first ``skip`` metres lies at least
+    ``clearance`` from obstacles and walls (the costmap's per-cell clearance, sampled every 0.1 m
+    or so up to 6 m)."""
+    n = 64
+    t = jnp.linspace(0.0, 1.0, n)
+    pts = start + t[:, None] * (end - start)
+    ij = grid.cell(pts)
+    ok = (grid.clearance[ij[:, 0], ij[:, 1]] >= clearance) | (t * jnp.linalg.norm(end - start) < skip)
+    return jnp.all(ok)
+
+
+def waypoint(
+    grid: Costmap, field: jax.Array, xy: jax.Array, goal_xy: jax.Array, cfg: WaypointConfig
+) -> tuple[jax.Array, jax.Array]:
+    """The point a policy at ``xy`` should drive at for ``goal_xy``, and whether it is not the goal.
+
+    The goal itself while the straight way to it is open (:func:`segment_open`); otherwise, of the
+    candidates (:meth:`WaypointConfig.candidates`) the base can drive straight to, the one through
+    which the way to the goal is shortest: the straight distance to it plus its cost-to-go on
+    ``field`` (:func:`distance_field` toward the goal), the farther of equals. The goal again when
+    no candidate is open and reachable. A policy trained to drive straight at a goal is then led
+    round a table that stands between it and the goal instead of pressing into it."""
+    direct = segment_open(grid, xy, goal_xy, cfg.clearance, cfg.skip)
+    pts = xy + jnp.asarray(cfg.candidates())
+    r = jnp.linalg.norm(pts - xy, axis=1)
+    open_ = jax.vmap(lambda p: segment_open(grid, xy, p, cfg.clearance, cfg.skip))(pts)
+    to_go = jax.vmap(lambda p: grid.lookup(field, p))(pts)
+    score = jnp.where(open_ & (to_go < UNREACHABLE), r + to_go - 1e-3 * r, jnp.inf)
+    best = jnp.argmin(score)
+    use = ~direct & jnp.isfinite(score[best])
+    return jnp.where(use, pts[best], goal_xy), use
+
+
 def guard(
     command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig, velocity: jax.Array, servo: Servo
 ) -> jax.Array:
