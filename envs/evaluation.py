@@ -15,8 +15,6 @@ from flax import struct
 from envs.nav import NavEnv, World
 from methd_jax import robot as robot_lib
 from methd_jax.deploy.safety import SafetyConfig
-from methd_jax.control import CONTROL_HZ
-from methd_jax.evaluation import navigator as nav
 from methd_jax.evaluation import safety_layer
 from methd_jax.evaluation.methods import Chase, Context
 from methd_jax.geometry import rotate, to_local
@@ -29,9 +27,6 @@ class PolicyState:
     u_w: jax.Array  # () GuideRL's user weight
     guide_actions: jax.Array  # (2,) GuideRL's previous actions
     step: jax.Array  # () int32 the engine step of the last call (-2 before the first)
-    field: jax.Array  # (H, W) the waypoints' plan toward plan_goal ((1, 1) without waypoints)
-    plan_goal: jax.Array  # (2,) the goal the plan was made for
-    plan_age: jax.Array  # () int32 steps since that plan
 
 
 class Policy:
@@ -45,58 +40,18 @@ class Policy:
 
     multi_user = True
 
-    def __init__(
-        self,
-        env: NavEnv,
-        policy,
-        name: str = "DRL",
-        safety: SafetyConfig | None = None,
-        waypoints: nav.Costmap | None = None,
-        waypoint_config: nav.WaypointConfig = nav.WaypointConfig(),
-    ):
+    def __init__(self, env: NavEnv, policy, name: str = "DRL", safety: SafetyConfig | None = None):
         """``safety``: put the deployment's safety layer (:mod:`.safety_layer`, the JAX twin of
-        :class:`methd_jax.deploy.safety.CollisionMonitor`) between the policy and the base.
-        ``waypoints``: the evaluation floor's costmap; the policy's goal features then describe
-        :func:`methd_jax.evaluation.navigator.waypoint` on the way to the goal, not the goal."""
+        :class:`methd_jax.deploy.safety.CollisionMonitor`) between the policy and the base."""
         self.env = env
         self.policy = policy
         self.name = name
         self.safety = safety
-        self.waypoints = waypoints
-        self.waypoint_config = waypoint_config
-        self._replan_steps = max(1, round(waypoint_config.replan_period * CONTROL_HZ))
         if env.config.num_users == 2 and env.guide_policy is None:
             raise ValueError("a two-user (NavRL) policy needs a GuideRL policy for its goal")
 
     def init(self):
-        shape = (1, 1) if self.waypoints is None else self.waypoints.shape
-        return PolicyState(
-            actions=jnp.zeros((3, 3)),
-            velocity=jnp.zeros(3),
-            u_w=jnp.float32(0.0),
-            guide_actions=jnp.zeros(2),
-            step=jnp.int32(-2),
-            field=jnp.full(shape, nav.UNREACHABLE),
-            plan_goal=jnp.full(2, jnp.inf),
-            plan_age=jnp.int32(0),
-        )
-
-    def _toward(self, state: PolicyState, pose: jax.Array, goal: jax.Array):
-        """(the pose the goal features describe, the plan's state): the goal, or a waypoint to it."""
-        if self.waypoints is None:
-            return goal, state
-        grid, cfg = self.waypoints, self.waypoint_config
-        direct = nav.segment_open(grid, pose[:2], goal[:2], cfg.clearance, cfg.skip)
-        moved = jnp.linalg.norm(goal[:2] - state.plan_goal) > cfg.replan_distance
-        replan = ~direct & (moved | (state.plan_age >= self._replan_steps))
-        field = jax.lax.cond(replan, lambda: nav.distance_field(grid, goal[:2]), lambda: state.field)
-        state = state.replace(
-            field=field,
-            plan_goal=jnp.where(replan, goal[:2], state.plan_goal),
-            plan_age=jnp.where(replan, 0, state.plan_age + 1),
-        )
-        xy, _ = nav.waypoint(grid, field, pose[:2], goal[:2], cfg)
-        return goal.at[:2].set(jnp.where(direct, goal[:2], xy)), state
+        return PolicyState(jnp.zeros((3, 3)), jnp.zeros(3), jnp.float32(0.0), jnp.zeros(2), jnp.int32(-2))
 
     def resume(self, state: PolicyState, ctx: Context) -> PolicyState:
         """``state`` with the base's own motion as its action and velocity history where the engine
@@ -147,8 +102,7 @@ class Policy:
         )
         world = self.env.update_goal(world, ctx.users, k_goal, scripted_step=True)
 
-        toward, state = self._toward(state, ctx.pose, world.goal)
-        obs, _, _ = self.env.observe(world, state.actions[0], k_obs, ctx.users, toward=toward)
+        obs, _, _ = self.env.observe(world, state.actions[0], k_obs, ctx.users)
         action = jnp.clip(self.policy(obs), -1.0, 1.0)
         command = self.env.command(action, state.actions[:2])
         if self.safety is not None:
@@ -163,7 +117,7 @@ class Policy:
                 self.safety,
                 robot_lib.velocity(ctx.robot),
             )
-        new = state.replace(
+        new = PolicyState(
             actions=jnp.concatenate([action[None], state.actions[:2]]),
             velocity=robot_lib.velocity(ctx.robot),
             u_w=world.u_w,

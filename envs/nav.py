@@ -578,31 +578,11 @@ class NavEnv(Env):
         mask = jnp.concatenate([mask, jnp.ones(user_xy.shape[0], bool)])
         return path_around_discs(pose[:2], goal[:2], discs, mask)
 
-    def _goal_features(self, pose: jax.Array, goal: jax.Array) -> jax.Array:
-        """s_g: the goal in the robot's frame (deadzoned), its distance, bearing and yaw error."""
-        cfg = self.config
-        p_g = to_local(pose, goal[:2])
-        d_g = jnp.linalg.norm(p_g)
-        theta_g = jnp.where(d_g < cfg.goal_tolerance, 0.0, jnp.arctan2(p_g[1], p_g[0]))
-        dyaw = wrap_angle(goal[2] - pose[2])
-        p_g_obs = jnp.where(jnp.abs(p_g) < cfg.goal_deadzone, 0.0, p_g)
-        dyaw_obs = jnp.where(jnp.abs(dyaw) < cfg.goal_yaw_deadzone, 0.0, dyaw)
-        return jnp.stack([p_g_obs[0], p_g_obs[1], d_g, theta_g, dyaw_obs])
-
-    def observe(
-        self,
-        w: World,
-        action: jax.Array,
-        key: jax.Array,
-        users: dict | None = None,
-        toward: jax.Array | None = None,
-    ):
+    def observe(self, w: World, action: jax.Array, key: jax.Array, users: dict | None = None):
         """The observation, the unweighted reward terms and the step's diagnostics.
 
         ``users`` (features of :meth:`MotionBank.at`, stacked per user) replaces the users that
-        ``w.users`` and ``w.t`` index, for callers that replay users differently (evaluation).
-        ``toward`` (x, y, yaw) replaces the goal in the observation's goal features (a waypoint on
-        the way to it); the users' order and the reward terms still follow ``w.goal``."""
+        ``w.users`` and ``w.t`` index, for callers that replay users differently (evaluation)."""
         cfg = self.config
         pose = robot_lib.pose(w.robot)
         users = self._user_features(w) if users is None else users
@@ -629,8 +609,11 @@ class NavEnv(Env):
 
         p_g = to_local(pose, w.goal[:2])
         d_g = jnp.linalg.norm(p_g)
+        theta_g = jnp.where(d_g < cfg.goal_tolerance, 0.0, jnp.arctan2(p_g[1], p_g[0]))
         dyaw = wrap_angle(w.goal[2] - pose[2])
-        s_g = self._goal_features(pose, w.goal if toward is None else toward)
+        p_g_obs = jnp.where(jnp.abs(p_g) < cfg.goal_deadzone, 0.0, p_g)
+        dyaw_obs = jnp.where(jnp.abs(dyaw) < cfg.goal_yaw_deadzone, 0.0, dyaw)
+        s_g = jnp.stack([p_g_obs[0], p_g_obs[1], d_g, theta_g, dyaw_obs])
 
         obs = jnp.concatenate([noisy, velocity, accel, action, w.actions[0], s_u.reshape(-1), s_g])
         within = (d_g < cfg.safety.goal_distance) & (jnp.abs(dyaw) < cfg.safety.goal_yaw)

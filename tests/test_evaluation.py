@@ -172,38 +172,6 @@ def test_a_base_handed_over_fast_brakes_at_the_base_limit_not_past_its_goal():
     assert float(jnp.linalg.norm(prev[:2])) == 0.0
 
 
-def test_waypoint_leads_round_a_table_between_the_base_and_its_goal():
-    """With a round table between base and goal the waypoint is not the goal, the base can drive
-    straight to it (checked against the floor's exact signed distance, not the costmap), and a base
-    that steps at whatever waypoint it is given reaches the goal without touching the table; with
-    the way open the goal itself comes back."""
-    table = open_floor(circles=[(0.0, 0.0, 0.6)])
-    grid = nav.costmap(table)
-    cfg = nav.WaypointConfig()
-    goal = jnp.array([0.0, 2.2])
-    field = nav.distance_field(grid, goal)
-    base = jnp.array([0.0, -1.6])
-    wp, used = nav.waypoint(grid, field, base, goal, cfg)
-    assert bool(used) and float(jnp.linalg.norm(wp - goal)) > 1.0
-    along = np.asarray(base)[None] + np.linspace(0.0, 1.0, 200)[:, None] * np.asarray(wp - base)[None]
-    far = np.linalg.norm(along - np.asarray(base), axis=1) >= cfg.skip
-    sdf = np.asarray(jax.vmap(lambda p: floors.signed_distance(table, p))(jnp.asarray(along)))
-    assert sdf[far].min() >= cfg.clearance - grid.resolution  # the costmap samples cell centres
-
-    step = jax.jit(lambda xy: nav.waypoint(grid, field, xy, goal, cfg)[0])
-    xy, closest = base, np.inf
-    for _ in range(200):
-        to = step(xy) - xy
-        xy = xy + to * jnp.minimum(1.0, 0.05 / jnp.maximum(jnp.linalg.norm(to), 1e-9))
-        closest = min(closest, float(floors.signed_distance(table, xy)))
-    assert float(jnp.linalg.norm(xy - goal)) < 0.1
-    assert closest > 0.5 * KAIROS.width  # the footprint never reached the table
-
-    aside = jnp.array([2.0, -1.6])
-    wp, used = nav.waypoint(grid, field, aside, jnp.array([2.0, 2.2]), cfg)
-    assert not bool(used) and np.allclose(np.asarray(wp), [2.0, 2.2])
-
-
 def test_guard_agrees_with_the_deployment_monitor():
     # the deployment's numpy collision monitor is the independent implementation of the same sweep
     from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
