@@ -163,3 +163,51 @@ def path_around_discs(start: jax.Array, goal: jax.Array, discs: jax.Array, mask:
     around = jnp.where(theta > alpha + beta, tangents + radius * (theta - alpha - beta), straight)
     extra = jnp.where(mask & (nb > radius), jnp.maximum(around - straight, 0.0), 0.0)
     return straight + jnp.sum(extra)
+
+
+def waypoint_around_discs(
+    start: jax.Array, goal: jax.Array, discs: jax.Array, mask: jax.Array, lookahead: float
+) -> jax.Array:
+    """A point on the way from ``start`` to ``goal`` round the first disc in the way: ``goal``
+    itself when the straight segment crosses no disc of ``discs`` (K, 3) where ``mask`` is set
+    (a disc that holds the goal does not count), else the point ``max(lookahead, tangent)`` along
+    the way round that disc alone (tangent, arc, tangent, turning the way the goal lies; the way
+    :func:`path_around_discs` measures), where "first" is the crossed disc whose centre projects
+    nearest ``start`` on the segment and ``tangent`` is the length of the way's first straight
+    part (so the point is never nearer than where the way leaves the straight line). A start
+    inside the disc counts from the rim."""
+    seg = goal - start
+    length = jnp.linalg.norm(seg)
+    centre, radius = discs[:, :2], discs[:, 2]
+    to_a, to_b = start - centre, goal - centre
+    na, nb = jnp.linalg.norm(to_a, axis=-1), jnp.linalg.norm(to_b, axis=-1)
+    a = jnp.maximum(na, radius)
+    b = jnp.maximum(nb, radius)
+    cos_t = jnp.sum(to_a * to_b, -1) / jnp.maximum(na * nb, 1e-9)
+    theta = jnp.arccos(jnp.clip(cos_t, -1.0, 1.0))
+    alpha = jnp.arccos(jnp.clip(radius / a, 0.0, 1.0))
+    beta = jnp.arccos(jnp.clip(radius / b, 0.0, 1.0))
+    crossed = mask & (nb > radius) & (theta > alpha + beta)
+    along = jnp.sum((centre - start) * seg, -1) / jnp.maximum(length, 1e-9)
+    k = jnp.argmin(jnp.where(crossed, along, jnp.inf))
+
+    c, r, u, v = centre[k], radius[k], to_a[k], to_b[k]
+    cross = u[0] * v[1] - u[1] * v[0]
+    side = jnp.where(cross >= 0.0, 1.0, -1.0)  # +1: round counter-clockwise
+    ang_u = jnp.arctan2(u[1], u[0])
+    ang_v = jnp.arctan2(v[1], v[0])
+    enter = ang_u + side * alpha[k]
+    leave = ang_v - side * beta[k]
+    sweep = theta[k] - alpha[k] - beta[k]
+    t_a = jnp.sqrt(jnp.maximum(a[k] ** 2 - r**2, 0.0))
+    rim_in = c + r * jnp.stack([jnp.cos(enter), jnp.sin(enter)])
+    rim_out = c + r * jnp.stack([jnp.cos(leave), jnp.sin(leave)])
+    s = jnp.maximum(lookahead, t_a)
+    on_tangent = start + (rim_in - start) * jnp.minimum(1.0, s / jnp.maximum(t_a, 1e-9))
+    turned = enter + side * jnp.minimum((s - t_a) / jnp.maximum(r, 1e-9), sweep)
+    on_arc = c + r * jnp.stack([jnp.cos(turned), jnp.sin(turned)])
+    t_b = jnp.sqrt(jnp.maximum(b[k] ** 2 - r**2, 0.0))
+    beyond = s - t_a - r * sweep
+    on_exit = rim_out + (goal - rim_out) * jnp.clip(beyond / jnp.maximum(t_b, 1e-9), 0.0, 1.0)
+    point = jnp.where(s <= t_a, on_tangent, jnp.where(beyond <= 0.0, on_arc, on_exit))
+    return jnp.where(jnp.any(crossed), point, goal)

@@ -728,6 +728,7 @@ def _set(path, value):
         (lambda m: m["deployment"].pop("footprint"), None, "missing or malformed field"),
         (_set(["deployment", "user_order"], "by_name"), None, "neither 'fixed' nor 'goal'"),
         (_set(["deployment", "user_order"], "goal"), None, "needs hip.distance and hip.lateral"),
+        (_set(["deployment", "goal_waypoint"], 1.0), None, "obstacle map the deployment does not have"),
         (None, {"manifest.json": b"{not json"}, "not valid JSON"),
         (None, {"params.npz": b"PK\x03\x04 truncated"}, "params.npz: unreadable"),
         (None, {"policy.onnx": b""}, "does not match the manifest's onnx_sha256"),

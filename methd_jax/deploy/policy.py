@@ -106,6 +106,11 @@ def _check(manifest: dict, path: Path) -> None:
             f"{file}: footprint {fp['length']} x {fp['width']} m is not the base's "
             f"{ROBOT_FOOTPRINT[0]} x {ROBOT_FOOTPRINT[1]} m"
         )
+    if "goal_waypoint" in d:
+        raise DeployError(
+            f"{file}: the policy reads its goal as a waypoint round the floor's obstacles "
+            "(env.goal_waypoint), which needs the obstacle map the deployment does not have yet"
+        )
     order = d.get("user_order", "fixed")  # folders exported before the field had a fixed order
     if order not in ("fixed", "goal"):
         raise DeployError(f"{file}: user_order {order!r} is neither 'fixed' nor 'goal'")
