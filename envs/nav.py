@@ -52,7 +52,7 @@ from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT, CONTROL_HZ
 from methd_jax.distances import USER_RADIUS
 from methd_jax.floors import Floor, FloorConfig
-from methd_jax.geometry import KAIROS, path_around_discs, rotate, to_local, waypoint_around_discs, wrap_angle
+from methd_jax.geometry import KAIROS, path_around_discs, rotate, to_local, wrap_angle
 from methd_jax.motion.features import HipConfig, MotionBank
 
 ENV_FLOORS = FloorConfig(room_size=(13.0, 16.0))
@@ -133,14 +133,6 @@ class NavConfig:
     :func:`methd_jax.geometry.path_around_discs`) instead of the straight line, so that a base
     behind a user or a piece of furniture is paid for going round it rather than for pressing
     toward the goal through it (the thesis: the straight distance)."""
-    goal_waypoint: float = 0.0
-    """Above 0: the observation's goal features describe, while the straight way to the goal
-    crosses an obstacle's covering disc (widened by half the base's width, as for
-    ``distance_around``), the point this far (or to where the way leaves the straight line, if
-    farther) along the way round the first such disc
-    (:func:`methd_jax.geometry.waypoint_around_discs`), so that a policy trained to drive at its
-    goal is shown a way round the table between them; the users' order and the rewards still
-    follow the goal (the thesis: 0, the goal itself), m."""
     users_by_goal: bool = False
     """The observation lists the users nearest-first by the distance from the goal to each one's
     HIP (placed by ``hip`` from the user's present pose) instead of in a fixed order, so that the
@@ -199,7 +191,6 @@ class NavConfig:
             "goal_deadzone",
             "goal_yaw_deadzone",
             "goal_clearance",
-            "goal_waypoint",
             "request_weight",
         ):
             if getattr(self, name) < 0:
@@ -577,17 +568,6 @@ class NavEnv(Env):
         )
         return goal.at[:2].set(xy)
 
-    def _goal_features(self, pose: jax.Array, goal: jax.Array) -> jax.Array:
-        """s_g: the goal in the robot's frame (dead-zoned), its distance, bearing and yaw error."""
-        cfg = self.config
-        p_g = to_local(pose, goal[:2])
-        d_g = jnp.linalg.norm(p_g)
-        theta_g = jnp.where(d_g < cfg.goal_tolerance, 0.0, jnp.arctan2(p_g[1], p_g[0]))
-        dyaw = wrap_angle(goal[2] - pose[2])
-        p_g_obs = jnp.where(jnp.abs(p_g) < cfg.goal_deadzone, 0.0, p_g)
-        dyaw_obs = jnp.where(jnp.abs(dyaw) < cfg.goal_yaw_deadzone, 0.0, dyaw)
-        return jnp.stack([p_g_obs[0], p_g_obs[1], d_g, theta_g, dyaw_obs])
-
     def _path_length(self, floor: Floor, pose: jax.Array, goal: jax.Array, user_xy: jax.Array) -> jax.Array:
         """The way from the base to the goal round the users' critical discs and the obstacles."""
         discs, mask = floors.obstacle_discs(floor, 0.5 * KAIROS.width)
@@ -629,13 +609,11 @@ class NavEnv(Env):
 
         p_g = to_local(pose, w.goal[:2])
         d_g = jnp.linalg.norm(p_g)
+        theta_g = jnp.where(d_g < cfg.goal_tolerance, 0.0, jnp.arctan2(p_g[1], p_g[0]))
         dyaw = wrap_angle(w.goal[2] - pose[2])
-        toward = w.goal
-        if cfg.goal_waypoint > 0:
-            discs, mask = floors.obstacle_discs(w.floor, 0.5 * KAIROS.width)
-            xy = waypoint_around_discs(pose[:2], w.goal[:2], discs, mask, cfg.goal_waypoint)
-            toward = w.goal.at[:2].set(xy)
-        s_g = self._goal_features(pose, toward)
+        p_g_obs = jnp.where(jnp.abs(p_g) < cfg.goal_deadzone, 0.0, p_g)
+        dyaw_obs = jnp.where(jnp.abs(dyaw) < cfg.goal_yaw_deadzone, 0.0, dyaw)
+        s_g = jnp.stack([p_g_obs[0], p_g_obs[1], d_g, theta_g, dyaw_obs])
 
         obs = jnp.concatenate([noisy, velocity, accel, action, w.actions[0], s_u.reshape(-1), s_g])
         within = (d_g < cfg.safety.goal_distance) & (jnp.abs(dyaw) < cfg.safety.goal_yaw)

@@ -199,63 +199,7 @@ def test_users_ordered_by_the_goal_match_the_env_and_put_the_goals_user_first():
         np.testing.assert_allclose(_numpy_observation(d, x, w, action, goal), obs, atol=2e-5, rtol=1e-5)
 
 
-def test_the_waypoint_round_the_furniture_matches_the_env():
-    """``NavConfig.goal_waypoint``: on the lab twin, from poses all over it, the deployment's numpy
-    observation (the furniture passed as discs) equals the env's, the waypoint taking over in many
-    of them; a Controller for such a policy needs the discs."""
-    from methd_jax.geometry import waypoint_around_discs
-
-    cfg = NavConfig(num_users=2, motion="sample", split="all", lab=True, lidar_noise=0.0, lidar_dropout=0.0)
-    env = NavEnv(dataclasses.replace(cfg, goal_waypoint=1.0))
-    state = jax.jit(env.reset)(jax.random.key(6))
-    w = state.pipeline_state
-    d = export.deployment_section(_manifest_of(env, "nav"))
-    assert d["goal_waypoint"] == 1.0
-    discs, mask = floors.obstacle_discs(w.floor)
-    obstacles = np.asarray(discs)[np.asarray(mask)]
-    observe = jax.jit(lambda v: env.observe(v, jnp.zeros(3), jax.random.key(0))[0])
-    rng = np.random.default_rng(6)
-    b = np.asarray(w.floor.bounds)
-    action, taken = np.zeros(3), 0
-    for _ in range(40):
-        pose = np.array([*rng.uniform(b[:2] + 0.5, b[2:] - 0.5), rng.uniform(-np.pi, np.pi)])
-        v = w.replace(robot=env.robot.init(jnp.asarray(pose, jnp.float32)))
-        x = _inputs(env, state.replace(pipeline_state=v))
-        obs = np.asarray(observe(v))
-        ours = _numpy_observation(d, x, v, action, x.goal, obstacles)
-        goal = env.observation_layout["goal"]
-        rest = np.r_[0 : goal.start, goal.stop : len(obs)]
-        np.testing.assert_allclose(ours[rest], obs[rest], atol=2e-5, rtol=1e-5)
-        # float32 arccos near a tangent: the env's waypoint is good to about a millimetre
-        np.testing.assert_allclose(ours[goal], obs[goal], atol=1e-3)
-        widened = jnp.asarray(obstacles + np.array([0.0, 0.0, 0.5 * KAIROS.width]))
-        wp = waypoint_around_discs(
-            jnp.asarray(pose[:2]), v.goal[:2], widened, jnp.ones(len(obstacles), bool), 1.0
-        )
-        taken += not np.allclose(np.asarray(wp), np.asarray(v.goal[:2]))
-    assert taken >= 5
-
-
-def test_a_controller_for_a_waypoint_policy_takes_the_furniture(su_deploy, su_env, tmp_path):
-    folder = _tampered(su_deploy, tmp_path, _set(["deployment", "goal_waypoint"], 1.0))
-    with pytest.raises(deploy.DeployError, match="pass obstacles="):
-        deploy.Controller(folder, backend="numpy")
-    with pytest.raises(deploy.DeployError, match="positive radii"):
-        deploy.Controller(folder, backend="numpy", obstacles=np.array([[0.0, 0.0, -1.0]]))
-    state = jax.jit(su_env.reset)(jax.random.key(5))
-    x = _inputs(su_env, state)
-    ahead = np.asarray(x.robot_pose[:2]) + 0.5 * (np.asarray(x.goal[:2]) - np.asarray(x.robot_pose[:2]))
-    table = np.array([[*ahead, 0.3]])  # between the base and its goal
-    plain = deploy.Controller(su_deploy, backend="numpy", safety=SafetyConfig(enabled=False))
-    shown = deploy.Controller(folder, backend="numpy", safety=SafetyConfig(enabled=False), obstacles=table)
-    a, b = plain.tick(x), shown.tick(x)
-    assert a.reason is None and b.reason is None and np.isfinite(b.twist).all()
-    assert not np.allclose(a.policy, b.policy)  # the waypoint, not the goal, drove this one
-
-
-def _numpy_observation(
-    d: dict, x: deploy.Inputs, w, action: np.ndarray, goal: np.ndarray, obstacles=None
-) -> np.ndarray:
+def _numpy_observation(d: dict, x: deploy.Inputs, w, action: np.ndarray, goal: np.ndarray) -> np.ndarray:
     """The deployment's observation of ``x`` as ``env.observe(w, action)`` builds it (``action`` as
     a_{t-1}, ``w.actions[0]`` as a_{t-2}, the acceleration from ``w.velocity``)."""
     return observation.observe(
@@ -267,7 +211,6 @@ def _numpy_observation(
         actions=np.stack([action, np.asarray(w.actions[0])]),
         users=x.users,
         goal=goal,
-        obstacles=obstacles,
     )
 
 
@@ -785,8 +728,6 @@ def _set(path, value):
         (lambda m: m["deployment"].pop("footprint"), None, "missing or malformed field"),
         (_set(["deployment", "user_order"], "by_name"), None, "neither 'fixed' nor 'goal'"),
         (_set(["deployment", "user_order"], "goal"), None, "needs hip.distance and hip.lateral"),
-        (_set(["deployment", "goal_waypoint"], 1.0), None, "pass obstacles="),
-        (_set(["deployment", "goal_waypoint"], -1.0), None, "goal_waypoint must be a positive distance"),
         (None, {"manifest.json": b"{not json"}, "not valid JSON"),
         (None, {"params.npz": b"PK\x03\x04 truncated"}, "params.npz: unreadable"),
         (None, {"policy.onnx": b""}, "does not match the manifest's onnx_sha256"),

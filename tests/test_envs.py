@@ -12,7 +12,7 @@ from envs.nav import NavConfig, observation_layout
 from methd_jax import floors, motion
 from methd_jax import robot as robot_lib
 from methd_jax.floors import FloorConfig
-from methd_jax.geometry import KAIROS, path_around_discs, waypoint_around_discs
+from methd_jax.geometry import path_around_discs
 
 EMPTY = FloorConfig(room_size=(13.0, 16.0), num_circles=(0, 0), num_polygons=(0, 0))
 OPEN_ROOM = FloorConfig(room_size=(20.0, 20.0), num_circles=(0, 0), num_polygons=(0, 0))
@@ -386,41 +386,6 @@ def test_distance_around_option_pays_r_d_for_the_way_round_the_user(bank):
     assert float(terms["distance"]) == pytest.approx(1.5, abs=1e-4)
 
 
-def test_goal_waypoint_option_shows_the_way_round_a_table(bank):
-    """With ``goal_waypoint`` the goal features describe the waypoint round a table between the
-    base and the goal (:func:`waypoint_around_discs` on the table widened by half the base's
-    width); the reward terms still measure the goal; with nothing in the way the observation is
-    the plain one to the bit."""
-    plain = envs.make("su", bank=bank, floor=EMPTY, lidar_noise=0.0, lidar_dropout=0.0)
-    shown = envs.make("su", bank=bank, floor=EMPTY, lidar_noise=0.0, lidar_dropout=0.0, goal_waypoint=1.0)
-    lay = plain.observation_layout
-    key = jax.random.key(5)
-    w = plain.reset(key).pipeline_state
-    goal = np.asarray(w.goal)
-    pose = jnp.asarray([goal[0] - 3.0, goal[1] + 0.1, 0.0], jnp.float32)
-    table = floors.Floor.from_primitives(
-        [(goal[0] - 1.5, goal[1], 0.5)], (), bounds=np.asarray(w.floor.bounds)
-    )
-    table = table.pad(*(max(a, b) for a, b in zip(w.floor.capacity, table.capacity, strict=True)))
-
-    def observe(env, floor):
-        v = w.replace(robot=env.robot.init(pose), floor=floor)
-        obs, terms, _ = jax.jit(env.observe)(v, jnp.zeros(3), key)
-        return np.asarray(obs), terms
-
-    seen, terms = observe(shown, table)
-    blind, blind_terms = observe(plain, table)
-    disc = jnp.array([[goal[0] - 1.5, goal[1], 0.5 + 0.5 * KAIROS.width]])
-    wp = np.asarray(waypoint_around_discs(pose[:2], jnp.asarray(goal[:2]), disc, jnp.array([True]), 1.0))
-    d_wp = float(np.linalg.norm(wp - np.asarray(pose[:2])))
-    assert seen[lay["goal"]][2] == pytest.approx(d_wp, abs=1e-4) and d_wp < 1.5
-    assert wp[1] > goal[1] + 0.5  # round the side the base stands on
-    assert blind[lay["goal"]][2] == pytest.approx(float(np.hypot(3.0, 0.1)), abs=1e-4)
-    np.testing.assert_array_equal(seen[: lay["goal"].start], blind[: lay["goal"].start])
-    assert float(terms["distance"]) == pytest.approx(float(blind_terms["distance"]))
-    np.testing.assert_array_equal(observe(shown, w.floor)[0], observe(plain, w.floor)[0])
-
-
 @pytest.mark.slow  # an option beyond the thesis, off by default
 def test_randomized_dynamics_option(bank):
     env = envs.make("su", bank=bank, randomize_dynamics=True)
@@ -789,6 +754,7 @@ def test_the_distances_around_users_have_one_home():
     """d_coll, d_crit and a user's radius come from methd_jax.distances in every config."""
     from methd_jax import distances
     from methd_jax.evaluation.engine import EngineConfig
+    from methd_jax.geometry import KAIROS
     from methd_jax.viz import Rollout
 
     assert distances.COLLISION_DISTANCE == pytest.approx(KAIROS.radius + 0.6)  # the base's radius + 0.6 m

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from methd_jax import geometry
-from methd_jax.geometry import KAIROS, Footprint, path_around_discs, waypoint_around_discs
+from methd_jax.geometry import KAIROS, Footprint, path_around_discs
 
 HALF_L, HALF_W = 1.13 / 2, 0.91 / 2
 
@@ -167,38 +167,3 @@ def test_the_way_round_discs_counts_only_what_is_in_the_way():
         float(path_around_discs(f(2 * math.cos(t * 3), 2 * math.sin(t * 3)), f(2, 0), disc, on)) for t in ts
     ]
     assert np.all(np.abs(np.diff(lengths)) < 0.2) and lengths[0] == pytest.approx(0.0, abs=1e-5)
-
-
-def test_the_waypoint_round_a_disc_lies_on_the_shortest_way_round_it():
-    """Against path_around_discs (itself checked against a sampled shortest path above): the
-    waypoint splits the way round exactly, lies max(lookahead, tangent) along it, and is the goal
-    when nothing is in the way; with two discs on the line it goes round the nearer one."""
-    rng = np.random.default_rng(3)
-    centre, r = np.array([0.4, -0.2]), 1.3
-    disc, on = jnp.array([[*centre, r]]), jnp.array([True])
-    way = lambda p, q: float(path_around_discs(jnp.asarray(p), jnp.asarray(q), disc, on))  # noqa: E731
-    round_, clear = 0, 0
-    while round_ < 20 or clear < 5:
-        a, b = rng.uniform(-4, 4, (2, 2))
-        if min(np.linalg.norm(a - centre), np.linalg.norm(b - centre)) < r + 0.05:
-            continue
-        look = float(rng.uniform(0.3, 3.0))
-        p = np.asarray(waypoint_around_discs(jnp.asarray(a), jnp.asarray(b), disc, on, look))
-        total = way(a, b)
-        if total <= np.linalg.norm(b - a) + 1e-4:
-            assert np.allclose(p, b, atol=1e-5)
-            clear += 1
-            continue
-        tangent = math.sqrt(np.linalg.norm(a - centre) ** 2 - r**2)
-        assert np.linalg.norm(p - centre) >= r - 1e-4  # never inside the disc
-        p = centre + (p - centre) * (1 + 1e-3 / np.linalg.norm(p - centre))  # on the rim: just out
-        assert way(a, p) + way(p, b) == pytest.approx(total, abs=5e-3)
-        assert way(a, p) == pytest.approx(min(max(look, tangent), total), abs=5e-3)
-        round_ += 1
-    two = jnp.array([[0.0, 0.0, 1.0], [6.0, 0.0, 1.0]])
-    p = waypoint_around_discs(
-        jnp.array([-2.0, 0.1]), jnp.array([8.0, 0.0]), two, jnp.array([True, True]), 0.5
-    )
-    assert float(p[0]) < 1.0  # round the first disc, not the second
-    inside = waypoint_around_discs(jnp.array([-0.5, 0.0]), jnp.array([2.0, 0.0]), two[:1], on, 1.0)
-    assert float(jnp.linalg.norm(inside)) == pytest.approx(1.0, abs=1e-5)  # from the rim

@@ -224,7 +224,6 @@ def deployment_section(manifest: dict) -> dict:
         "collision_distance": safety["collision_distance"],
         "critical_distance": safety["critical_distance"],
         **_user_order(env),
-        **({"goal_waypoint": env["goal_waypoint"]} if env.get("goal_waypoint", 0.0) > 0 else {}),
     }
 
 

@@ -87,11 +87,7 @@ class Controller:
         backend: str = "onnx",
         safety: SafetyConfig | None = None,
         watchdog: WatchdogConfig = WatchdogConfig(),
-        obstacles: np.ndarray | None = None,
     ):
-        """``obstacles`` (K, 3): the room's furniture as covering discs (x, y, radius; e.g.
-        ``methd_jax.floors.obstacle_discs`` of its floor), which a policy trained with
-        ``env.goal_waypoint`` needs to place its waypoint; other policies ignore them."""
         self.manifest = load_manifest(path)
         if self.manifest["action"].get("frame") != "robot":
             raise DeployError(
@@ -105,17 +101,6 @@ class Controller:
         else:
             raise DeployError(f"unknown backend {backend!r}; use 'onnx' or 'numpy'")
         self.deployment = d = self.manifest["deployment"]
-        self.obstacles = None
-        if "goal_waypoint" in d:
-            discs = None if obstacles is None else np.asarray(obstacles, np.float64)
-            if discs is None or discs.ndim != 2 or discs.shape[1] != 3:
-                raise DeployError(
-                    f"{path}: the policy reads its goal as a waypoint round the room's obstacles "
-                    "(env.goal_waypoint): pass obstacles=, the furniture as (K, 3) discs x, y, radius"
-                )
-            if not (np.isfinite(discs).all() and (discs[:, 2] > 0).all()):
-                raise DeployError(f"{path}: obstacles must be finite discs with positive radii")
-            self.obstacles = discs
         self.num_rays = d["lidar"]["num_rays"]
         self.num_users = d["num_users"]
         self.dt = 1.0 / d["control_hz"]
@@ -229,7 +214,6 @@ class Controller:
                 actions=self.actions,
                 users=np.asarray(x.users, np.float64),
                 goal=np.asarray(x.goal, np.float64),
-                obstacles=self.obstacles,
             )
             action = np.asarray(self.policy(obs), np.float64)
             if not np.isfinite(action).all():

@@ -44,48 +44,6 @@ def goal_user_order(users: np.ndarray, goal: np.ndarray, hip: dict) -> np.ndarra
     return np.argsort(np.linalg.norm(hip_xy - np.asarray(goal[:2]), axis=1), kind="stable")
 
 
-def waypoint_around_discs(
-    start: np.ndarray, goal: np.ndarray, discs: np.ndarray, lookahead: float
-) -> np.ndarray:
-    """numpy twin of :func:`methd_jax.geometry.waypoint_around_discs` for the discs ``(K, 3)``
-    (x, y, radius) that exist: ``goal`` (2,) when the straight way crosses none, else the point
-    ``max(lookahead, tangent)`` along the way round the first crossed disc."""
-    start, goal = np.asarray(start, np.float64), np.asarray(goal, np.float64)
-    discs = np.asarray(discs, np.float64).reshape(-1, 3)
-    if len(discs) == 0:
-        return goal
-    centre, radius = discs[:, :2], discs[:, 2]
-    to_a, to_b = start - centre, goal - centre
-    na, nb = np.linalg.norm(to_a, axis=1), np.linalg.norm(to_b, axis=1)
-    a, b = np.maximum(na, radius), np.maximum(nb, radius)
-    theta = np.arccos(np.clip(np.sum(to_a * to_b, 1) / np.maximum(na * nb, 1e-9), -1.0, 1.0))
-    alpha = np.arccos(np.clip(radius / a, 0.0, 1.0))
-    beta = np.arccos(np.clip(radius / b, 0.0, 1.0))
-    crossed = (nb > radius) & (theta > alpha + beta)
-    if not crossed.any():
-        return goal
-    seg = goal - start
-    along = (centre - start) @ seg / max(np.linalg.norm(seg), 1e-9)
-    k = int(np.argmin(np.where(crossed, along, np.inf)))
-    c, r, u, v = centre[k], radius[k], to_a[k], to_b[k]
-    side = 1.0 if u[0] * v[1] - u[1] * v[0] >= 0.0 else -1.0
-    enter = np.arctan2(u[1], u[0]) + side * alpha[k]
-    leave = np.arctan2(v[1], v[0]) - side * beta[k]
-    sweep = theta[k] - alpha[k] - beta[k]
-    t_a = np.sqrt(max(a[k] ** 2 - r**2, 0.0))
-    s = max(lookahead, t_a)
-    if s <= t_a:
-        rim_in = c + r * np.array([np.cos(enter), np.sin(enter)])
-        return start + (rim_in - start) * min(1.0, s / max(t_a, 1e-9))
-    beyond = s - t_a - r * sweep
-    if beyond <= 0.0:
-        turned = enter + side * min((s - t_a) / max(r, 1e-9), sweep)
-        return c + r * np.array([np.cos(turned), np.sin(turned)])
-    rim_out = c + r * np.array([np.cos(leave), np.sin(leave)])
-    t_b = np.sqrt(max(b[k] ** 2 - r**2, 0.0))
-    return rim_out + (goal - rim_out) * np.clip(beyond / max(t_b, 1e-9), 0.0, 1.0)
-
-
 def observe(
     deployment: dict,
     *,
@@ -96,15 +54,13 @@ def observe(
     actions: np.ndarray,
     users: np.ndarray,
     goal: np.ndarray,
-    obstacles: np.ndarray | None = None,
 ) -> np.ndarray:
     """The observation vector (float32).
 
     ``ranges`` (num_rays,) robot-frame LiDAR, ray i at 2*pi*i/num_rays counter-clockwise (inf: no
     return); ``robot_pose`` (3,) world x, y, yaw; ``velocity`` / ``acceleration`` (3,) robot frame;
     ``actions`` (2, 3) the policy's a_{t-1}, a_{t-2}; ``users`` (N, 6) world x, y, yaw, vx, vy, wz;
-    ``goal`` (3,) world x, y, yaw; ``obstacles`` (K, 3) the room's furniture as covering discs
-    (x, y, radius), for a policy that reads its goal as a waypoint round them (``goal_waypoint``).
+    ``goal`` (3,) world x, y, yaw.
     """
     lidar, g = deployment["lidar"], deployment["goal"]
     pose = np.asarray(robot_pose, np.float64)
@@ -121,19 +77,10 @@ def observe(
     phi_u = wrap_angle(np.arctan2(to_robot[:, 1], to_robot[:, 0]) - users[:, 2])
     s_u = np.concatenate([p_u, v_u, phi_u[:, None], theta_u[:, None], d_u[:, None]], 1)
 
-    toward = np.asarray(goal, np.float64)
-    if "goal_waypoint" in deployment:
-        if obstacles is None:
-            raise ValueError("this policy reads its goal as a waypoint round the obstacles: pass obstacles")
-        discs = np.asarray(obstacles, np.float64).reshape(-1, 3).copy()
-        discs[:, 2] += 0.5 * deployment["footprint"]["width"]  # as the training env widens them
-        toward = np.concatenate(
-            [waypoint_around_discs(pose[:2], toward[:2], discs, deployment["goal_waypoint"]), toward[2:3]]
-        )
-    p_g = to_local(pose, toward[:2])
+    p_g = to_local(pose, np.asarray(goal[:2], np.float64))
     d_g = np.linalg.norm(p_g)
     theta_g = 0.0 if d_g < g["tolerance"] else np.arctan2(p_g[1], p_g[0])
-    dyaw = wrap_angle(toward[2] - pose[2])
+    dyaw = wrap_angle(goal[2] - pose[2])
     p_g = np.where(np.abs(p_g) < g["deadzone"], 0.0, p_g)
     dyaw = 0.0 if abs(dyaw) < g["yaw_deadzone"] else dyaw
     s_g = np.array([p_g[0], p_g[1], d_g, theta_g, dyaw])

@@ -106,9 +106,6 @@ def _check(manifest: dict, path: Path) -> None:
             f"{file}: footprint {fp['length']} x {fp['width']} m is not the base's "
             f"{ROBOT_FOOTPRINT[0]} x {ROBOT_FOOTPRINT[1]} m"
         )
-    lookahead = d.get("goal_waypoint", 1.0)
-    if not (isinstance(lookahead, int | float) and math.isfinite(lookahead) and lookahead > 0):
-        raise DeployError(f"{file}: goal_waypoint must be a positive distance in metres, got {lookahead!r}")
     order = d.get("user_order", "fixed")  # folders exported before the field had a fixed order
     if order not in ("fixed", "goal"):
         raise DeployError(f"{file}: user_order {order!r} is neither 'fixed' nor 'goal'")
