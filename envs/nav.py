@@ -47,6 +47,7 @@ from mujoco import mjx
 
 from envs import rewards
 from envs.goals import goal_from_weight
+from envs.shield import ShieldConfig, safe_command
 from methd_jax import floors, lidar, motion
 from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT, CONTROL_HZ
@@ -167,6 +168,8 @@ class NavConfig:
     from that step on) is paid this many times more, reported as ``reward/request``. The
     evaluation hands the base to its navigator at the request, so where the base is then is what
     a policy is judged by; with a short ``cooldown`` the episode ends there (the thesis: 0)."""
+    shield: ShieldConfig = dataclasses.field(default_factory=ShieldConfig)
+    """The stopping rule of :meth:`NavEnv.shield_target` (used by PPO's ``ppo.shield_scale``)."""
 
     def __post_init__(self):
         for name in ("num_users", "num_rays", "spawn_candidates", "action_latency", "contact_limit"):
@@ -495,6 +498,23 @@ class NavEnv(Env):
         cmd = blended * self._scale
         cmd = cmd.at[:2].set(jnp.where(jnp.abs(cmd[:2]) < cfg.deadzone_linear, 0.0, cmd[:2]))
         return cmd.at[2].set(jnp.where(jnp.abs(cmd[2]) < cfg.deadzone_angular, 0.0, cmd[2]))
+
+    def shield_target(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(the action whose command is ``action``'s slowed by the stopping rule of
+        :mod:`envs.shield`, whether the rule slowed it) for one raw observation ``obs``: its
+        LiDAR ranges and the two previous actions it carries are all the rule needs. The target
+        keeps ``action``'s turn rate and lies in [-1, 1]^3 (at -1 the base brakes as hard as a
+        policy can make it when the previous actions still carry it on)."""
+        cfg = self.config
+        layout = observation_layout(cfg.num_users, cfg.num_rays)
+        previous = jnp.stack([obs[layout["previous_action"]], obs[layout["previous_action_2"]]])
+        command = self.command(action, previous)
+        safe, scale = safe_command(command, obs[layout["lidar"]], cfg.shield)
+        wa = cfg.action_weights
+        wanted = (safe[:2] / self._scale[:2] - wa[1] * previous[0, :2] - wa[2] * previous[1, :2]) / wa[0]
+        slowed = scale < 1.0
+        target = action.at[:2].set(jnp.where(slowed, jnp.clip(wanted, -1.0, 1.0), action[:2]))
+        return target, slowed
 
     def _with_request(self, weighted: dict, terms: dict, firing: jax.Array) -> dict:
         """``weighted`` with ``reward/request`` (the extra r_d at the request step) where it is paid."""

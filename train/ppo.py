@@ -90,6 +90,11 @@ class PPOConfig:
     """Weight of a penalty on the policy's mean leaving the start policy's (``init_from``) on the
     rollout's observations: half the squared distance in units of the current std, i.e. the KL
     from the start policy at the current std (:func:`anchor_penalty`); 0 disables."""
+    shield_scale: float = 0.0
+    """Weight of a pull of the policy's mean action, where the environment's stopping rule
+    (``env.shield_target``, :mod:`envs.shield`) would slow it, toward the slowed action
+    (:func:`shield_penalty`, averaged over the batch: zero where the rule lets the action be);
+    0 disables."""
 
     def __post_init__(self):
         for name in ("rollouts", "epochs", "minibatches"):
@@ -105,6 +110,8 @@ class PPOConfig:
             raise ValueError("ppo clip values, kl_threshold and obs_clip must be >= 0")
         if not self.anchor_scale >= 0:
             raise ValueError(f"ppo.anchor_scale must be >= 0, got {self.anchor_scale}")
+        if not self.shield_scale >= 0:
+            raise ValueError(f"ppo.shield_scale must be >= 0, got {self.shield_scale}")
         if not 0 < self.lr_range[0] <= self.lr_range[1]:
             raise ValueError(f"ppo.lr_range must be an ordered positive range, got {self.lr_range}")
 
@@ -187,12 +194,25 @@ def anchor_penalty(mean: jax.Array, log_std: jax.Array, anchor_mean: jax.Array) 
     return jnp.mean(jnp.sum(0.5 * z**2, axis=-1))
 
 
-def ppo_loss(params, apply_fn, batch, config: PPOConfig):
+def shield_penalty(mean: jax.Array, raw_obs: jax.Array, shield) -> tuple[jax.Array, jax.Array]:
+    """(the penalty of :attr:`PPOConfig.shield_scale` before its weight, the share of the batch the
+    rule slowed): half the squared distance of the mean action from ``shield(raw_obs, mean)``'s
+    target where the rule slowed the mean, the target held fixed (the rule is a teacher, not a
+    path for gradients). In action units, not the anchor's units of the std: as PPO narrows the
+    std, a pull measured in it would grow without bound."""
+    target, slowed = jax.vmap(shield)(raw_obs, jax.lax.stop_gradient(jnp.clip(mean, -1.0, 1.0)))
+    per = jnp.where(slowed, jnp.sum(0.5 * (mean - jax.lax.stop_gradient(target)) ** 2, axis=-1), 0.0)
+    return jnp.mean(per), jnp.mean(slowed.astype(jnp.float32))
+
+
+def ppo_loss(params, apply_fn, batch, config: PPOConfig, shield=None):
     """skrl's PPO loss on one minibatch; returns ``(loss, parts)``.
 
     ``batch``: ``obs`` (standardised), ``action``, ``log_prob``, ``value`` and ``returns``
     (both standardised), ``advantage`` (standardised); with an anchor (``TrainState.anchor``),
-    ``anchor_mean``, the start policy's mean action, adds :func:`anchor_penalty`.
+    ``anchor_mean``, the start policy's mean action, adds :func:`anchor_penalty`; with
+    ``config.shield_scale``, ``raw_obs`` (the observations as the environment gave them) and
+    ``shield`` (the environment's ``shield_target``) add :func:`shield_penalty`.
     """
     mean, log_std, value = apply_fn(params, batch["obs"])
     log_std = jnp.clip(log_std, *LOG_STD_RANGE)
@@ -214,6 +234,10 @@ def ppo_loss(params, apply_fn, batch, config: PPOConfig):
         anchor_loss = config.anchor_scale * anchor_penalty(mean, log_std, batch["anchor_mean"])
         loss = loss + anchor_loss
         anchor = {"loss/anchor": anchor_loss}
+    if config.shield_scale > 0:
+        shield_loss, slowed = shield_penalty(mean, batch["raw_obs"], shield)
+        loss = loss + config.shield_scale * shield_loss
+        anchor |= {"loss/shield": config.shield_scale * shield_loss, "policy/shielded": slowed}
     parts = {
         "loss/policy": policy_loss,
         "loss/value": value_loss,
@@ -295,6 +319,10 @@ class Trainer:
                 f"num_envs x rollouts ({batch}) must be divisible by minibatches ({config.minibatches})"
             )
         self.env = env if isinstance(env, AutoReset) else AutoReset(env)
+        self.shield = getattr(self.env.env, "shield_target", None)
+        if config.shield_scale > 0 and self.shield is None:
+            name = type(self.env.env).__name__
+            raise ValueError(f"ppo.shield_scale needs an environment with a shield_target; {name} has none")
         self.network = network
         self.config = config
         self.num_envs = num_envs
@@ -383,6 +411,8 @@ class Trainer:
             "returns": value_stats.normalize(flat(returns)),
             "advantage": flat(adv),
         }
+        if cfg.shield_scale > 0:
+            data["raw_obs"] = flat(traj["obs"])
         if s.anchor is not None:  # the start policy's mean on the same observations, in one batch
             anchor_obs = s.anchor["obs_stats"].normalize(flat(traj["obs"]), cfg.obs_clip)
             data["anchor_mean"] = self.network.apply(s.anchor["params"], anchor_obs)[0]
@@ -391,7 +421,7 @@ class Trainer:
 
         def minibatch(carry, mb):
             params, opt_state = carry
-            (_, parts), grads = grad_fn(params, self.network.apply, mb, cfg)
+            (_, parts), grads = grad_fn(params, self.network.apply, mb, cfg, self.shield)
             updates, opt_state = self.optimizer.update(grads, opt_state, params)
             parts["grad_norm"] = optax.tree.norm(grads)
             return (optax.apply_updates(params, updates), opt_state), parts
