@@ -503,17 +503,19 @@ class NavEnv(Env):
         """(the action whose command is ``action``'s slowed by the stopping rule of
         :mod:`envs.shield`, whether the rule slowed it) for one raw observation ``obs``: its
         LiDAR ranges and the two previous actions it carries are all the rule needs. The target
-        keeps ``action``'s turn rate and lies in [-1, 1]^3 (at -1 the base brakes as hard as a
-        policy can make it when the previous actions still carry it on)."""
+        differs from ``action`` only in the components the rule changed and lies in [-1, 1]^3 (at
+        -1 the base brakes as hard as a policy can make it when the previous actions still carry
+        it on)."""
         cfg = self.config
-        layout = observation_layout(cfg.num_users, cfg.num_rays)
+        layout = self._layout
         previous = jnp.stack([obs[layout["previous_action"]], obs[layout["previous_action_2"]]])
         command = self.command(action, previous)
-        safe, scale = safe_command(command, obs[layout["lidar"]], cfg.shield)
+        safe, _ = safe_command(command, obs[layout["lidar"]], cfg.shield)
         wa = cfg.action_weights
-        wanted = (safe[:2] / self._scale[:2] - wa[1] * previous[0, :2] - wa[2] * previous[1, :2]) / wa[0]
-        slowed = scale < 1.0
-        target = action.at[:2].set(jnp.where(slowed, jnp.clip(wanted, -1.0, 1.0), action[:2]))
+        wanted = (safe / self._scale - wa[1] * previous[0] - wa[2] * previous[1]) / wa[0]
+        changed = safe != command
+        target = jnp.where(changed, jnp.clip(wanted, -1.0, 1.0), action)
+        slowed = jnp.any(changed)
         return target, slowed
 
     def _with_request(self, weighted: dict, terms: dict, firing: jax.Array) -> dict:
