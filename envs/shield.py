@@ -1,15 +1,16 @@
 """A stopping rule cheap enough to judge every action PPO trains on: the shield teacher.
 
 The deployment's safety layer (:mod:`methd_jax.evaluation.safety_layer`) sweeps the footprint
-along the command's arc and costs 2-20x a training step, so PPO cannot ask it about every
-transition. This rule keeps what matters most for a base driving at furniture: along the direction
-of the commanded linear velocity, how far the footprint can translate before it meets a scan
-point, and the largest speed from which the base, reacting after a lag and then braking, stops a
-margin short of it. PPO's shield term (:attr:`train.ppo.PPOConfig.shield_scale`) pulls the
-policy's mean action toward the action whose command is the commanded one slowed to that speed,
-where it is slower: a supervised signal on every step near an obstacle instead of a penalty after
-a contact. Beside it, the whole command, turn included, is swept a short horizon ahead as the
-safety layer sweeps it, at a few poses: a rectangle turning beside a wall meets it with a corner.
+along the command's arc, slides blocked commands and checks the brake: 2-20x what training spends
+per step of its environments, so PPO cannot ask it about every transition. This rule keeps what
+matters most for a base driving at furniture: along the direction of the commanded linear
+velocity, how far the footprint can translate before it meets a scan point, and the largest speed
+from which the base, reacting after a lag and then braking, stops a margin short of it. PPO's
+shield term (:attr:`train.ppo.PPOConfig.shield_scale`) pulls the policy's mean action toward the
+action whose command is the commanded one slowed to that speed, where it is slower: a supervised
+signal on every step near an obstacle instead of a penalty after a contact. Beside it, the whole
+command, turn included, is swept a short horizon ahead as the safety layer sweeps it, at a few
+poses: a rectangle turning beside a wall meets it with a corner.
 """
 
 from __future__ import annotations
@@ -92,7 +93,10 @@ def sweep_scale(command: jax.Array, points: jax.Array, body: jax.Array, config: 
     ``points`` at the sweep's poses: exact at those poses, since at factor s the base reaches in the
     horizon what the full command reaches in s times it. As the safety layer, points inside the
     footprint at the start are passed by (a contact that has happened) and points inside the
-    margin are tested against the footprint itself."""
+    margin are tested against the footprint itself. The layer's own
+    :func:`methd_jax.evaluation.safety_layer.sweep` tests the segments between poses and gives
+    the same factors on 90-ray lab scans at these settings, but costs 8x this (4.4 against 0.56 ms
+    for 256 scans on a 2-core CPU), and PPO asks the rule about every transition of every epoch."""
     if config.horizon <= 0:
         return jnp.float32(1.0)
     poses = arc(command, config.horizon * jnp.arange(1, config.samples + 1) / config.samples)
