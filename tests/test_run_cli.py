@@ -1,6 +1,7 @@
 """``python -m train.run``: help, one-line errors on bad input, and a whole small run on disk."""
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -403,6 +404,12 @@ def test_max_minutes_ends_early_with_a_checkpoint_and_the_export(tmp_path, capsy
     rows = (run / "metrics.jsonl").read_text().splitlines()
     assert len(rows) == CHUNK and (run / "checkpoints" / str(CHUNK)).is_dir()
     assert export.load(run).manifest["trained"]["iteration"] == CHUNK
+    # the throughput counts the iterations done, not those the run would have done
+    per = json.loads(rows[0])["transitions"]
+    chunk_s = sum(json.loads(r)["seconds"] for r in rows)
+    readme = (run / "README.md").read_text()
+    reported = float(re.search(r"\| throughput \| ([\d,]+) transitions/s", readme)[1].replace(",", ""))
+    assert 0 < reported <= CHUNK * per / chunk_s
     metrics = run / "metrics.jsonl"
     metrics.write_text(metrics.read_text() + f'{{"iteration": {CHUNK + 1}, "loss/pol')  # killed mid-append
     assert main(["--resume", str(run), "--quiet", "--max-minutes", "1e-6"]) == 0  # continues by a call

@@ -455,7 +455,9 @@ def train(
 
     meta["iteration"] = int(state.iteration)
     meta["wall_s"] = time.perf_counter() - t_begin
-    meta["transitions_per_s"] = timed * per / timed_s if timed else per * max(1, end - start) / meta["wall_s"]
+    # with no chunk past the first (compilation included), the rate over the whole wall time
+    done = int(state.iteration) - start
+    meta["transitions_per_s"] = timed * per / timed_s if timed else per * max(1, done) / meta["wall_s"]
     if primary:
         _export(setup, run_dir / "policy", state.params, state.obs_stats, run_dir, meta["iteration"])
         _symlog_curve(rows, run_dir / "reward_curve.png", f"{preset_name}: {run_dir.name}", trainer.ratios)
