@@ -771,7 +771,7 @@ def test_cli_baselines_and_a_trained_policy(tmp_path, capsys, full):
         (["--su", "/nonexistent"], "no exported policy"),
         (["--mu", "/nonexistent", "--no-mu"], "contradict"),
         (["--su", "/nonexistent", "--no-su"], "contradict"),
-        (["--no-su", "--no-mu"], "leave nothing to evaluate"),
+        (["--no-su", "--no-mu"], "leave nothing to evaluate (add --guide RUN"),
         (["--no-su", "--procedural", "2"], "--procedural needs a single-user policy"),
         (["--guide", "/nonexistent", "--no-mu"], "no exported policy"),
         (["--split", "train"], "4 trajectories have no train split"),
@@ -784,6 +784,25 @@ def test_cli_bad_input_is_one_line(args, message, capsys, tmp_path):
     err = capsys.readouterr().err
     assert code == 2
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_cli_guide_alone_reports_its_accuracy_without_rows(tmp_path, capsys):
+    """``--no-su --no-mu --guide RUN``: GuideRL's accuracy is the whole report (no table, no figures)."""
+    from train import evaluate
+
+    out = tmp_path / "g"
+    guide = str(evaluate.shipped("guide"))
+    assert (
+        evaluate.main(
+            ["--motion", "sample", "--no-su", "--no-mu", "--guide", guide, "--quiet", "--out", str(out)]
+        )
+        == 0
+    )
+    text = capsys.readouterr().out
+    assert "GuideRL: the requesting user named at the request" in text and "Haptic positioning time" not in text
+    data = json.loads((out / "results.json").read_text())
+    assert data["guide"]["pairs"] == 12 and data["summaries"] == {} and data["meta"]["mu_run"] is None
+    assert sorted(p.name for p in out.iterdir()) == ["results.json", "table.md"]
 
 
 def test_cli_no_su_runs_the_multi_user_rows_alone(monkeypatch, tmp_path):

@@ -237,18 +237,20 @@ def write_report(results: dict, out: Path, meta: dict) -> tuple[str, dict]:
     """``table.md``, ``results.json`` and the figures; returns the table and the statistics."""
     out.mkdir(parents=True, exist_ok=True)
     summaries = {name: metrics.summary(r) for name, r in results.items()}
-    table = metrics.table_markdown(summaries)
+    # GuideRL alone (--no-su --no-mu --guide RUN) leaves no rows: its accuracy is the report
+    table = metrics.table_markdown(summaries) if summaries else ""
     st = statistics(results)
     stats_text = _stats_text(st)
-    figures = plots.figures(results, summaries, out)
-    text = ["# Table 5.1, reproduced", "", _meta_text(meta), "", table, ""]
+    figures = plots.figures(results, summaries, out) if summaries else []
+    text = ["# Table 5.1, reproduced", "", _meta_text(meta), "", *([table, ""] if table else [])]
     if "procedural" in meta:
         text += [_procedural_text(meta["procedural"]), ""]
     if "guide" in meta:
         text += [_guide_text(meta["guide"], meta.get("split", "test")), ""]
     if stats_text:
         text += ["## Statistics", "", "```", stats_text, "```", ""]
-    text += ["Figures: " + ", ".join(f"[{p.name}]({p.name})" for p in figures), ""]
+    if figures:
+        text += ["Figures: " + ", ".join(f"[{p.name}]({p.name})" for p in figures), ""]
     (out / "table.md").write_text("\n".join(text))
     payload = {"meta": meta, "summaries": summaries, "statistics": st, "thesis": metrics.THESIS}
     if "guide" in meta:
@@ -396,8 +398,10 @@ def main(argv=None) -> int:
             raise ConfigError(f"--trajectories must be at least 1, got {args.trajectories}")
         if args.su and args.no_su:
             raise ConfigError("--su and --no-su contradict each other")
-        if args.no_su and args.no_mu:
-            raise ConfigError("--no-su and --no-mu leave nothing to evaluate")
+        if args.no_su and args.no_mu and not args.guide:
+            raise ConfigError(
+                "--no-su and --no-mu leave nothing to evaluate (add --guide RUN for GuideRL alone)"
+            )
         if args.motion not in ("default", "sample") and not Path(args.motion).is_dir():
             raise ConfigError(f"--motion {args.motion}: not 'default', 'sample' or a folder")
         try:
@@ -458,7 +462,8 @@ def main(argv=None) -> int:
         return 2
     table, st = write_report(results, out, meta)
     print(_meta_text(meta))
-    print(table)
+    if table:
+        print(table)
     if "procedural" in meta:
         print(_procedural_text(meta["procedural"]))
     if "guide" in meta:
@@ -466,7 +471,7 @@ def main(argv=None) -> int:
     text = _stats_text(st)
     if text:
         print(text)
-    print(f"wrote {out / 'table.md'}, {out / 'results.json'} and figures")
+    print(f"wrote {out / 'table.md'}, {out / 'results.json'}" + (" and figures" if table else ""))
     return 0
 
 
