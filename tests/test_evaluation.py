@@ -799,7 +799,8 @@ def test_cli_guide_alone_reports_its_accuracy_without_rows(tmp_path, capsys):
         == 0
     )
     text = capsys.readouterr().out
-    assert "GuideRL: the requesting user named at the request" in text and "Haptic positioning time" not in text
+    assert "GuideRL: the requesting user named at the request" in text
+    assert "Haptic positioning time" not in text
     data = json.loads((out / "results.json").read_text())
     assert data["guide"]["pairs"] == 12 and data["summaries"] == {} and data["meta"]["mu_run"] is None
     assert sorted(p.name for p in out.iterdir()) == ["results.json", "table.md"]
