@@ -456,7 +456,7 @@ def train(
     meta["iteration"] = int(state.iteration)
     meta["wall_s"] = time.perf_counter() - t_begin
     # with no chunk past the first (compilation included), the rate over the whole wall time
-    done = int(state.iteration) - start
+    done = meta["iteration"] - start
     meta["transitions_per_s"] = timed * per / timed_s if timed else per * max(1, done) / meta["wall_s"]
     if primary:
         _export(setup, run_dir / "policy", state.params, state.obs_stats, run_dir, meta["iteration"])
