@@ -192,15 +192,47 @@ def test_guard_agrees_with_the_deployment_monitor():
     commands = rng.uniform([-2, -2, -1.5], [2, 2, 1.5], (200, 3)).astype(np.float32)
     commands[:20, 2] = 0.0  # straight lines too
     ours = np.asarray(guard(jnp.asarray(commands), jnp.asarray(ranges)))
-    theirs = np.stack(
-        [
-            c * monitor.obstacle_scale(c.astype(np.float64), monitor.points(r, c))
-            for c, r in zip(commands, ranges, strict=True)
-        ]
-    )
+    pairs = zip(commands, ranges, strict=True)
+    slid = [monitor.slide(c.astype(np.float64), monitor.points(r, c)) for c, r in pairs]
+    theirs = np.stack([chosen * s for chosen, s in slid])
     scaled = np.linalg.norm(theirs, axis=1) < np.linalg.norm(commands, axis=1) - 1e-6
+    turned = np.array([not np.array_equal(chosen, c) for (chosen, _), c in zip(slid, commands, strict=True)])
     assert 30 < scaled.sum() < 190  # the scenes exercise both outcomes
+    assert 10 < turned.sum()  # and the slide
     np.testing.assert_allclose(ours, theirs, atol=1e-4)
+
+
+def test_guard_lets_a_base_at_a_wall_leave_along_it():
+    # a base whose corner touches a wall, told to leave 60 degrees off the wall's normal (the
+    # navigator's heading for open space in a passage too narrow to plan through): its margin is
+    # past the wall's surface, so scaling alone holds it to a creep; the slide takes it along
+    from methd_jax import lidar
+    from methd_jax import robot as robot_lib
+    from methd_jax.geometry import KAIROS
+
+    base, cfg = robot_lib.Robot(), nav.NavigatorConfig()
+    floor, wall, y0, yaw = floors.lab(), -5.5, 3.85, -2.15  # SS2's pin, in the passage by the west wall
+    corner = np.array([KAIROS.half_extents[0], -KAIROS.half_extents[1]])  # robot frame
+    c, s_ = math.cos(yaw), math.sin(yaw)
+    x0 = wall - (c * corner[0] - s_ * corner[1]) + 1e-4  # corner 0.1 mm off the wall
+    world = np.array([0.5, -math.sqrt(3) / 2]) * 0.3  # 0.3 m/s, 60 degrees off the normal (+x)
+    command = jnp.array([c * world[0] + s_ * world[1], -s_ * world[0] + c * world[1], 0.0])
+
+    def run(data, _):
+        scan = lidar.scan(floor, robot_lib.pose(data), num_rays=720)
+        g = nav.guard(command, scan, cfg, robot_lib.velocity(data), base.servo())
+        data = base.step(data, g)
+        return data, jnp.min(lidar.scan(floor, robot_lib.pose(data), num_rays=720) - boundary)
+
+    boundary, _ = KAIROS.ray_geometry(720)
+    start = base.init(jnp.array([x0, y0, yaw]))
+    scan = lidar.scan(floor, robot_lib.pose(start), num_rays=720)
+    first = nav.guard(command, scan, cfg, jnp.zeros(3), base.servo())
+    assert float(jnp.linalg.norm(first[:2])) > 0.25  # turned, not scaled: the whole speed
+    end, clearance = jax.jit(lambda d: jax.lax.scan(run, d, None, length=150))(start)
+    moved = float(jnp.linalg.norm(robot_lib.pose(end)[:2] - jnp.array([x0, y0])))
+    assert moved > 0.5  # 3 s at up to 0.3 m/s
+    assert float(jnp.min(clearance)) > -1e-3  # never into the wall
 
 
 def test_guard_keeps_a_coasting_base_off_a_post():

@@ -12,8 +12,10 @@ step. All pure and deterministic; the field is planned only when the caller asks
 a 50 Hz loop does not pay for a plan every step.
 
 :func:`guard` is the local planner's footprint check (nav2's collision monitor, "approach"
-behaviour): the command is held over a horizon, the footprint swept along the arc against the
-latest scan, and the command scaled so that the sweep stops short of the first point it would hit;
+behaviour), the deployment safety layer's obstacle part: the command is held over a horizon, the
+footprint swept along the arc against the latest scan, and the command scaled so that the sweep
+stops short of the first point it would hit, or, where a turned neighbour of it is less changed at
+its own clear factor, replaced by that one (it slides along a wall it would otherwise stop at);
 then lowered further until the base, which carries its own velocity for a while, can still brake
 clear of the scan (:func:`methd_jax.robot.predict`).
 The plan and the follower only see the footprint's circumscribed disc on a 0.1 m grid; the guard
@@ -33,7 +35,8 @@ from flax import struct
 
 from methd_jax import floors
 from methd_jax.control import CONTROL_DT
-from methd_jax.evaluation.safety_layer import brake_scale, sorted_points, sweep
+from methd_jax.deploy.safety import SafetyConfig
+from methd_jax.evaluation.safety_layer import brake_scale, slide, sorted_points
 from methd_jax.floors import Floor
 from methd_jax.geometry import rotate, wrap_angle
 from methd_jax.robot import Servo
@@ -303,17 +306,22 @@ def segment_clear(grid: Costmap, start: jax.Array, end: jax.Array, skip: float =
 def guard(
     command: jax.Array, ranges: jax.Array, cfg: NavigatorConfig, velocity: jax.Array, servo: Servo
 ) -> jax.Array:
-    """``command`` (robot frame) scaled so that the base neither sweeps into a scan point nor
-    coasts into one; ``ranges`` is a full-circle scan from the base's centre (rays as
+    """``command`` (robot frame) slid and scaled so that the base neither sweeps into a scan point
+    nor coasts into one; ``ranges`` is a full-circle scan from the base's centre (rays as
     :func:`methd_jax.geometry.ray_angles`, from the robot's heading), ``velocity`` the base's
     robot-frame velocity and ``servo`` its servos (:meth:`methd_jax.robot.Robot.servo`).
 
-    First the factor whose sweep over ``guard_horizon`` hits no scan point. Scaling is exact for
-    static points: at factor s the base covers in the horizon T what the full command covers in
-    s T, so s is the last clear sample's time over T. Points already inside the footprint are
-    ignored (a contact that has happened: what is checked is what the command would newly hit);
-    points inside the margin are checked against the footprint itself, so the base may back away
-    from a close wall but not drive into it.
+    The safety layer's obstacle check (:func:`methd_jax.evaluation.safety_layer.slide`, then
+    :func:`~methd_jax.evaluation.safety_layer.brake_scale`) over ``guard_horizon`` with
+    ``guard_margin``, without its users (the plan keeps them out). Points already inside the
+    footprint are ignored (a contact that has happened) and points inside the margin are checked
+    against the footprint itself, so the base may back away from a close wall but not drive into
+    it. A base whose corner touches a wall has its margin past the wall's surface, so any motion
+    along the wall sweeps the margin into the wall: scaled alone, a command 60 degrees off the
+    wall's normal is held to a creep at the wall for as long as it is given (a base in a passage
+    too narrow for the plan is given that command until it leaves). The command turned by the
+    slide angles is also tried, as the deployment's layer does, and the one least changed at its
+    own clear factor is sent.
 
     The sweep takes the base to move as commanded, but it carries its own velocity for a while
     (the servos' 0.1 s lag and 3 m/s^2): a base whose command turns away from a table can still
@@ -321,5 +329,6 @@ def guard(
     scaled command for one control period and then braking for ``guard_horizon``, stays clear
     along the path :func:`methd_jax.robot.predict` gives; when no factor does, it brakes."""
     near = sorted_points(ranges)
-    s0 = sweep(command, *near, cfg.guard_horizon, CONTROL_DT, cfg.guard_margin)
-    return command * brake_scale(command, s0, velocity, *near, servo, cfg.guard_horizon, cfg.guard_margin)
+    config = SafetyConfig(horizon=cfg.guard_horizon, time_step=CONTROL_DT, margin=cfg.guard_margin)
+    chosen, s0 = slide(command, near, config)
+    return chosen * brake_scale(chosen, s0, velocity, *near, servo, cfg.guard_horizon, cfg.guard_margin)
