@@ -161,6 +161,29 @@ def test_default_dataset_is_cached(tmp_path):
         _same(a, b)
 
 
+def test_default_dataset_made_by_two_runs_at_once(tmp_path, monkeypatch):
+    """Two runs started together both make the dataset; the one that finishes second finds the
+    other's folder in place and keeps it (both once wrote into one shared .partial folder, and the
+    second failed to rename it)."""
+    from methd_jax.motion import dataset
+
+    save, getpid = dataset.bags.save, dataset.os.getpid
+
+    def save_while_another_run_finishes(folder, trajectories, **kw):
+        save(folder, trajectories, **kw)
+        monkeypatch.setattr(dataset.bags, "save", save)
+        monkeypatch.setattr(dataset.os, "getpid", lambda: getpid() + 1)  # the other process
+        motion.default_dataset(2, 5, cache=tmp_path, progress=False)
+        monkeypatch.setattr(dataset.os, "getpid", getpid)
+
+    monkeypatch.setattr(dataset.bags, "save", save_while_another_run_finishes)
+    ours = motion.default_dataset(2, 5, cache=tmp_path, progress=False)
+    (folder,) = (tmp_path / "motion").iterdir()  # no partial folder left behind
+    assert (folder / "trajectories.npz").is_file()
+    for a, b in zip(ours, motion.default_dataset(2, 5, cache=tmp_path, progress=False), strict=True):
+        _same(a, b)
+
+
 # --- recordings made by someone else --------------------------------------------------------------
 
 

@@ -107,12 +107,20 @@ def default_dataset(
     if npz.is_file():
         return _read_npz(npz)
     trajectories = synthesize(n, seed, config=config, progress=progress_bar("synthesising", progress))
-    tmp = folder.with_name(folder.name + ".partial")
+    # a folder of this process's own: two runs started together each make the dataset, and the
+    # first to finish places it (the key fixes the data, so the other's copy is the same)
+    tmp = folder.with_name(f"{folder.name}.partial-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     bags.save(tmp, trajectories, progress=progress_bar("writing MCAP", progress))
     _write_npz(tmp / "trajectories.npz", trajectories)
-    shutil.rmtree(folder, ignore_errors=True)
-    tmp.rename(folder)  # all or nothing: a crash leaves only the .partial folder
+    if not npz.is_file():
+        shutil.rmtree(folder, ignore_errors=True)  # an incomplete folder of another version
+    try:
+        tmp.rename(folder)  # all or nothing: a crash leaves only the .partial folder
+    except OSError:
+        if not npz.is_file():
+            raise
+    shutil.rmtree(tmp, ignore_errors=True)
     return trajectories
 
 
