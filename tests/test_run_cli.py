@@ -234,6 +234,15 @@ def test_init_from_starts_from_the_other_runs_learned_state(small_run, tmp_path,
     assert main(["quick", *TINY, "hidden=16", f"init_from={source}", "--out", str(tmp_path / "b")]) == 2
     assert "does not fit this run" in capsys.readouterr().err
     assert not (tmp_path / "b").exists()  # nothing left behind that would block the corrected command
+    # from the exported policy folder the observation statistics keep the weight of the
+    # transitions they were estimated on, as a resumed run's do: one iteration's weight let the
+    # first iterations re-estimate them and shift the inputs under the loaded policy
+    from_policy = run_lib._warm_start(fresh, source / "policy", setup)
+    assert float(from_policy.obs_stats.count) == exported.manifest["trained"]["transitions"]
+    assert exported.manifest["trained"]["transitions"] > setup.trainer.transitions_per_iteration
+    stats = jax.device_get(from_policy.obs_stats)
+    np.testing.assert_allclose(stats.mean, np.asarray(exported.obs_mean), rtol=1e-6)
+    np.testing.assert_allclose(stats.var, np.asarray(exported.obs_std) ** 2, rtol=1e-5)
     # the same source's exported policy starts a two-user (NavRL) run
     _check_two_user_start_from_su_policy(source)
 
@@ -259,6 +268,8 @@ def _check_two_user_start_from_su_policy(source):
     np.testing.assert_allclose(mean[u0], np.asarray(su.obs_mean)[theirs], rtol=1e-6)
     np.testing.assert_allclose(mean[u1], mean[u0], rtol=1e-6)
     np.testing.assert_allclose(std[u1], std[u0], rtol=1e-5)
+    # user 1's borrowed statistics weigh one iteration of data, so that they adapt to user 1
+    assert float(warm.obs_stats.count) == setup.trainer.transitions_per_iteration
 
     obs_nav = jax.random.normal(jax.random.key(0), (16, setup.env.observation_size)) * 2
     obs_su = jnp.concatenate([obs_nav[:, : u1.start], obs_nav[:, u1.stop :]], axis=1)

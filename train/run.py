@@ -144,7 +144,10 @@ def _from_policy(state, folder: Path, setup: Setup):
     fields than this run (a single-user policy for two users): the parameters through
     :func:`networks.transfer_inputs` (a new field starts at zero weight), each field's
     normaliser statistics from the same field, or for a new field from its namesake up to the
-    index (``user1`` from ``user0``), weighted as one iteration of data so that they adapt. The
+    index (``user1`` from ``user0``). Statistics that all come from their own fields keep the
+    weight of the transitions they were estimated on (the manifest's ``trained.transitions``), as
+    a resumed run's do, so that the policy keeps seeing the inputs it was trained on; with any
+    borrowed field they weigh one iteration of data, so that the borrowed ones adapt. The
     optimiser, value statistics and learning rate stay fresh."""
     try:
         policy = export.load(folder)
@@ -172,14 +175,18 @@ def _from_policy(state, folder: Path, setup: Setup):
     except (ValueError, KeyError) as err:
         raise ConfigError(f"init_from={folder}: its parameters do not fit this run ({err})") from None
     mean, var = np.zeros(size, np.float32), np.ones(size, np.float32)
+    own = True
     for name, (a, b) in target.items():
         origin = source.get(name) or source.get(name.rstrip("0123456789") + "0")
-        if origin and origin[1] - origin[0] == b - a:
+        loaded = origin is not None and origin[1] - origin[0] == b - a
+        if loaded:
             mean[a:b] = policy.obs_mean[origin[0] : origin[1]]
             var[a:b] = np.asarray(policy.obs_std[origin[0] : origin[1]]) ** 2
-    stats = state.obs_stats.replace(
-        mean=mean, var=var, count=np.float32(setup.trainer.transitions_per_iteration)
-    )
+        own = own and loaded and name in source
+    iteration = setup.trainer.transitions_per_iteration
+    trained = int(policy.manifest.get("trained", {}).get("transitions") or 0)
+    count = max(iteration, trained) if own else iteration
+    stats = state.obs_stats.replace(mean=mean, var=var, count=np.float32(count))
     # onto the devices (and shardings) of the fresh state's arrays
     place = functools.partial(jax.tree.map, lambda new, old: jax.device_put(new, old.sharding))
     return state.replace(params=place(params, state.params), obs_stats=place(stats, state.obs_stats))
