@@ -129,8 +129,9 @@ class RunConfig:
     init_from: str = ""
     """Start from a run folder's newest checkpoint (parameters, optimiser, observation and value
     statistics; same network, observation size and num_envs; floors, rewards and PPO settings may
-    differ) or from an exported policy folder (parameters and observation statistics; the run may
-    see more observation fields, e.g. a second user, which start at zero weight)."""
+    differ) or from an exported policy folder (parameters and observation statistics, the latter at
+    the weight of the transitions they came from; the run may see more observation fields, e.g. a
+    second user, which start at zero weight)."""
     noise_restart: bool = False
     """With ``init_from``: the policy's action noise (its log standard deviation) restarts at
     ``init_log_std`` instead of the source's, so that PPO explores again (e.g. what inputs the
