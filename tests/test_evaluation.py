@@ -469,6 +469,26 @@ def test_blocked_robot_goes_to_inform_and_recovers():
     assert res["collisions_user"][0] == 0 and res["collisions_obstacle"][0] == 0
 
 
+def test_inform_walks_the_user_back_until_the_robot_is_unstuck():
+    # the pocket between the lab's east wall and the dock where a validation episode looped through
+    # Inform for 180 s: with the user 2 m away no escape point exists, at 2.5 m one does (north,
+    # out of the pocket). The user walks in from the west-north-west and stands 1 m from the base
+    lab = floors.lab()
+    base = np.array([4.48, -4.56])
+    away = np.array([3.2, -3.74]) - base
+    away /= np.linalg.norm(away)
+    traj = walk([base + 6.0 * away, base + 1.0 * away], [1.0], request_at_end=False, hold=60.0)
+    res, rec = run(M.Static(), [traj], lab, (*base, -2.96), steps=50 * 60)
+    modes = rec["mode"]
+    inform = np.flatnonzero(modes == E.INFORM)
+    assert len(inform) > 0
+    left = inform[-1] + 1
+    assert modes[left] == E.ESCAPE  # the walk-back ended at a way out, not at a distance
+    assert res["informs"][0] == 1  # once: the base is out of the pocket
+    assert rec["pose"][-1, 1] > -3.5
+    assert res["collisions_user"][0] == 0 and res["collisions_obstacle"][0] == 0
+
+
 def test_metrics_of_a_hand_made_episode():
     # the user walks 2 m east and stops facing east; the HIP is 2 m ahead, 0.3 m to the right.
     traj = walk([(-3.0, 0.0), (-1.0, 0.0)], [1.0], hold=20.0, yaw=0.0)

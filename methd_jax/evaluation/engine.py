@@ -11,9 +11,11 @@ Behaviours (``MODES``):
   a fixed list (straight back first, then turned by up to 90 degrees); after it, back to Chase (or
   Haptic if a request is pending). An escape that has not arrived after 5 s goes to Inform.
 - **Inform**: no escape point exists: the users stop; the robot looks for an escape point again
-  every second; after 10 s the users walk back along their trajectories until the closest is 2 m
-  away (or the robot found a way out), then everything resumes. A robot cornered on a user's path
-  can loop through Inform, as the thesis reports; an episode ends after 180 s regardless.
+  every second; after 10 s the users walk back along their trajectories until the robot is
+  unstuck (thesis §5.1): until a look finds an escape point, which the robot then drives to, or
+  until the users are back at their trajectories' starts, where everything resumes. A robot
+  cornered where even that frees nothing can loop through Inform, as the thesis reports; an
+  episode ends after 180 s regardless.
 
 An *episode* is one test case: SU, trajectory ``k`` with the robot carried over from the
 previous one; MU, a trajectory pair with the robot reset to one of four start poses and the
@@ -66,8 +68,6 @@ class EngineConfig:
     """An escape that has not arrived by then turns into Inform, s."""
     inform_wait: float = 10.0
     """Seconds the users stand in Inform before walking back (thesis §5.1)."""
-    inform_release: float = 2.0
-    """Walking back ends when the closest user is this far away, m."""
     inform_retry: float = 1.0
     """Seconds between looks for an escape point while in Inform (also while the users walk back,
     which is what frees a cornered robot)."""
@@ -411,7 +411,11 @@ class Engine:
         late = (mode == ESCAPE) & (mode_t >= cfg.steps(cfg.escape_timeout))
         res = _add(res, "informs", k, late)
         mode, mode_t = enter(INFORM, late, mode, mode_t)
-        released = (mode == INFORM) & (s.direction < 0) & (closest >= cfg.inform_release)
+        # walking back ends at the trajectories' starts; a way out found on the way ends it sooner
+        # (the retry below): releasing at some distance instead left a robot cornered on the
+        # user's path stuck in place, and the user walked straight back into Inform
+        at_start = jnp.all((s.play == 0) | ~present)
+        released = (mode == INFORM) & (s.direction < 0) & at_start
         mode, mode_t = enter(resume, released, mode, mode_t)
 
         # Escape trigger (Chase, Haptic) and Inform's retries
