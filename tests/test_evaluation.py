@@ -349,6 +349,51 @@ def test_safety_layer_twin_agrees_with_the_deployment_monitor():
     np.testing.assert_allclose(ours, np.asarray(theirs), atol=1e-4)
 
 
+def test_safety_layer_twin_unbatched_stops_where_the_monitor_does():
+    # one base at a time (lax.map, as the SU engine runs it) the twin's sweeps stop at the first
+    # block of samples that meets a point and its brake check at the first factor that clears;
+    # vmapped (the test above) those loops run to the end, so the early exits are checked here,
+    # against the numpy monitor, on a wall at 0-1 m from the footprint in every direction
+    from methd_jax.deploy.safety import CollisionMonitor, SafetyConfig
+    from methd_jax.evaluation import safety_layer
+    from methd_jax.geometry import KAIROS, ray_angles
+
+    config = SafetyConfig()
+    monitor = CollisionMonitor(KAIROS.length, KAIROS.width, 720, 1.37, config)
+    rng = np.random.default_rng(5)
+    n = 60
+    a = ray_angles(720)
+    normal = rng.uniform(-np.pi, np.pi, n)
+    gap = rng.uniform(0.6, 1.6, n)  # wall to centre, m; the footprint reaches 0.46-0.73 m
+    facing = np.cos(a[None] - normal[:, None])
+    ranges = np.where(facing > 1e-3, gap[:, None] / np.maximum(facing, 1e-3), np.inf).astype(np.float32)
+    ranges[ranges > 30.0] = np.inf
+    speed = rng.uniform(0.2, 1.5, n)
+    toward = normal + rng.uniform(-1.2, 1.2, n)  # mostly at the wall, some along it
+    commands = np.stack([speed * np.cos(toward), speed * np.sin(toward), rng.uniform(-1, 1, n)], 1)
+    commands = commands.astype(np.float32)
+    base = (rng.uniform([-1, -1, -1], [1, 1, 1], (n, 3)) * (np.arange(n) % 2)[:, None]).astype(np.float32)
+    users = np.full((n, 1, 2), 50.0, np.float32)  # far away: the obstacle checks decide
+    still = np.zeros((n, 1, 2), np.float32)
+
+    def one(args):
+        c, r, u, v, b = args
+        return safety_layer.filter_command(c, r, u, v, jnp.ones(1, bool), 1.37, config, b)
+
+    ours = np.asarray(
+        jax.jit(lambda *x: jax.lax.map(one, x))(*map(jnp.asarray, (commands, ranges, users, still, base)))
+    )
+    theirs, reasons = [], []
+    for c, r, u, v, b in zip(commands, ranges, users, still, base, strict=True):
+        out, why = monitor(c.astype(np.float64), r.astype(np.float64), u, v, velocity=b.astype(np.float64))
+        theirs.append(out)
+        reasons.append(why)
+    scaled = np.linalg.norm(np.asarray(theirs), axis=1) < np.linalg.norm(commands, axis=1) - 1e-6
+    assert 15 < scaled.sum() < n - 5  # walls that stop or slow the command, and some that do not
+    assert reasons.count("obstacle") > 15
+    np.testing.assert_allclose(ours, np.asarray(theirs), atol=1e-4)
+
+
 def test_user_walking_at_the_robot_triggers_escape():
     # the robot waits at the origin; the user walks straight at it from 6 m away
     traj = walk([(-5.0, 0.0), (1.0, 0.0)], [1.0])

@@ -72,50 +72,78 @@ def obstacle_scale(command: jax.Array, ranges: jax.Array, horizon: float, time_s
 
 
 def sweep(command, ranges, points, horizon: float, time_step: float, margin: float) -> jax.Array:
-    """:func:`obstacle_scale` on the scan of :func:`sorted_points`. Only the points within the
-    sweep's :func:`methd_jax.deploy.safety.reach` can stop it, so only the chunks of the nearest
-    points that hold them are swept: the same factor as sweeping every point, at the cost of the
-    points nearby."""
+    """:func:`obstacle_scale` on the scan of :func:`sorted_points`: the first sample of the arc that
+    newly meets a point (:func:`first_hit`), as a share of the horizon; 1 if none does."""
     steps = max(1, round(horizon / time_step))
-    poses = arc(command, time_step * jnp.arange(1, steps + 1))
-    hit = path_hits(poses, ranges, points, margin, reach(command, _radius(margin), horizon, jnp))
-    return jnp.where(jnp.any(hit), jnp.argmax(hit) / steps, 1.0)
+    times = time_step * jnp.arange(1, steps + 1)
+    poses = arc(command, times)
+    first = first_hit(poses, ranges, points, margin, reach(command, _radius(margin), times, jnp))
+    return jnp.where(first < steps, first / steps, 1.0)
 
 
-def path_hits(poses, ranges, points, margin: float, extent) -> jax.Array:
-    """(T,): whether the footprint plus ``margin``, moving from the origin through ``poses`` (T, 3)
-    (in the frame of the scan of :func:`sorted_points`), newly meets a scan point between one pose
-    and the next. Points within the footprint at the origin are ignored and points within the
-    margin are tested against the footprint itself (see :func:`obstacle_scale`); only points
-    nearer than ``extent`` (the farthest any part of the footprint gets) are tested."""
+BLOCK = 10
+"""Samples of a path tested at a time: the search stops at the first block that holds a hit."""
+
+
+def first_hit(poses, ranges, points, margin: float, extents) -> jax.Array:
+    """The index of the first of ``poses`` (T, 3) (in the frame of the scan of
+    :func:`sorted_points`) at which the footprint plus ``margin``, moving from the origin, newly
+    meets a scan point between the previous pose and this one; T if it meets none. Points within
+    the footprint at the origin are ignored and points within the margin are tested against the
+    footprint itself (see :func:`obstacle_scale`).
+
+    ``extents`` (T,), nondecreasing: how far from the origin any part of the footprint plus margin
+    gets up to each pose. The path is tested BLOCK samples at a time, each block against only the
+    nearest points its extent reaches (a point beyond it cannot be met by then), and the search
+    stops at the first block with a hit: a base stopped early by a wall tests the few samples and
+    points before the contact, not the whole horizon against every point it could reach."""
     body = jnp.asarray(KAIROS.half_extents)
     half = body + margin
-    needed = jnp.sum(ranges <= extent + 0.01)  # 1 cm for rounding
-    chunks = (needed + CHUNK - 1) // CHUNK
+    steps = poses.shape[0]
+    blocks = -(-steps // BLOCK)
+    pad = blocks * BLOCK - steps
+    # the origin first, so each sample's segment starts at the sample before it
+    path = jnp.concatenate([jnp.zeros((1, 3), poses.dtype), poses, jnp.repeat(poses[-1:], pad, 0)])
+    reached = jnp.concatenate([extents, jnp.repeat(extents[-1:], pad)])
 
-    def hits(c):  # (T,) whether a point of chunk c is newly hit between samples
-        pts = jax.lax.dynamic_slice_in_dim(points, c * CHUNK, CHUNK)
-        valid = c * CHUNK + jnp.arange(CHUNK) < needed
-        in_body = jnp.all(jnp.abs(pts) <= body, -1)
-        in_margin = jnp.all(jnp.abs(pts) <= half, -1) & ~in_body
-        local = jax.vmap(to_local, (0, None))(poses, pts)  # (T, CHUNK, 2)
-        before = jnp.concatenate([pts[None], local[:-1]])  # where each point was one sample earlier
-        hit = segment_meets_box(before, local, half, jnp) & valid & ~in_body & ~in_margin
-        hit |= segment_meets_box(before, local, body, jnp) & valid & in_margin
-        return jnp.any(hit, axis=1)
+    def block_hits(b):  # (BLOCK,) whether a point is newly met at each sample of block b
+        segment = jax.lax.dynamic_slice_in_dim(path, b * BLOCK, BLOCK + 1)
+        needed = jnp.sum(ranges <= reached[b * BLOCK + BLOCK - 1] + 0.01)  # 1 cm for rounding
+        chunks = (needed + CHUNK - 1) // CHUNK
 
-    _, hit = jax.lax.while_loop(
-        lambda ch: ch[0] < chunks,
-        lambda ch: (ch[0] + 1, ch[1] | hits(ch[0])),
-        (0, jnp.zeros(poses.shape[0], bool)),
+        def hits(c):
+            pts = jax.lax.dynamic_slice_in_dim(points, c * CHUNK, CHUNK)
+            valid = c * CHUNK + jnp.arange(CHUNK) < needed
+            in_body = jnp.all(jnp.abs(pts) <= body, -1)
+            in_margin = jnp.all(jnp.abs(pts) <= half, -1) & ~in_body
+            local = jax.vmap(to_local, (0, None))(segment, pts)  # (BLOCK + 1, CHUNK, 2)
+            hit = segment_meets_box(local[:-1], local[1:], half, jnp) & valid & ~in_body & ~in_margin
+            hit |= segment_meets_box(local[:-1], local[1:], body, jnp) & valid & in_margin
+            return jnp.any(hit, axis=1)
+
+        _, hit = jax.lax.while_loop(
+            lambda ch: ch[0] < chunks,
+            lambda ch: (ch[0] + 1, ch[1] | hits(ch[0])),
+            (0, jnp.zeros(BLOCK, bool)),
+        )
+        return hit & (b * BLOCK + jnp.arange(BLOCK) < steps)
+
+    def next_block(state):
+        b, _ = state
+        hit = block_hits(b)
+        return b + 1, jnp.where(jnp.any(hit), b * BLOCK + jnp.argmax(hit), steps)
+
+    _, first = jax.lax.while_loop(
+        lambda state: (state[0] < blocks) & (state[1] == steps), next_block, (0, jnp.int32(steps))
     )
-    return hit
+    return first
 
 
-def path_extent(poses, margin: float) -> jax.Array:
-    """How far from the origin any part of the footprint plus ``margin`` gets at ``poses``: its
-    half-diagonal plus the farthest centre (turning moves no point farther from the centre)."""
-    return _radius(margin) + jnp.max(jnp.linalg.norm(poses[:, :2], axis=1))
+def path_extents(poses, margin: float) -> jax.Array:
+    """(T,): how far from the origin any part of the footprint plus ``margin`` gets up to each of
+    ``poses``: its half-diagonal plus the farthest centre so far (turning moves no point farther
+    from the centre)."""
+    return _radius(margin) + jax.lax.cummax(jnp.linalg.norm(poses[:, :2], axis=1))
 
 
 def slide(command: jax.Array, near: tuple, config: SafetyConfig) -> tuple[jax.Array, jax.Array]:
@@ -136,7 +164,8 @@ def slide(command: jax.Array, near: tuple, config: SafetyConfig) -> tuple[jax.Ar
 
     def search():  # the neighbours' sweeps only when the command's own is blocked
         cands = jnp.stack(candidates(command, t), -1)
-        scales = jnp.concatenate([s0[None], jax.vmap(scale)(cands[1:])])
+        # one after another, not vmapped: each sweep then stops at its own first contact
+        scales = jnp.concatenate([s0[None], jax.lax.map(scale, cands[1:])])
         k = jnp.argmin(change(command, t, scales, radius))
         return cands[k], scales[k]
 
@@ -175,11 +204,15 @@ def brake_scale(command, upper, velocity, ranges, points, servo: Servo, horizon:
     def stoppable(factor):
         commands = jnp.zeros((1 + brake, 3)).at[0].set(factor * command)
         poses = robot_lib.predict(servo, velocity, commands)
-        return ~jnp.any(path_hits(poses, ranges, points, margin, path_extent(poses, margin)))
+        return first_hit(poses, ranges, points, margin, path_extents(poses, margin)) == poses.shape[0]
 
-    factors = upper * jnp.array([1.0, 0.5, 0.0])
-    ok = jax.vmap(stoppable)(factors)
-    return jnp.where(jnp.any(ok), factors[jnp.argmax(ok)], 0.0)
+    # half is tried only if the whole fails; 0 needs no check, as it is the answer either way
+    upper = jnp.asarray(upper, jnp.float32)
+
+    def half():
+        return jax.lax.cond(stoppable(0.5 * upper), lambda: 0.5 * upper, lambda: jnp.zeros_like(upper))
+
+    return jax.lax.cond(stoppable(upper), lambda: upper, half)
 
 
 def servo(config: SafetyConfig) -> Servo:
