@@ -20,7 +20,6 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from methd_jax.deploy.safety import swept_margin
 from methd_jax.evaluation.safety_layer import arc
 from methd_jax.geometry import KAIROS, scan_points, to_local
 
@@ -93,19 +92,20 @@ def sweep_scale(command: jax.Array, points: jax.Array, body: jax.Array, config: 
     ``config.horizon``, takes the footprint grown by ``config.sweep_margin`` onto none of
     ``points`` at the sweep's poses: exact at those poses, since at factor s the base reaches in the
     horizon what the full command reaches in s times it. As the safety layer, points inside the
-    footprint at the start are passed by (a contact that has happened) and a point inside the
-    margin shrinks it to just under that point's clearance
-    (:func:`methd_jax.deploy.safety.swept_margin`). The layer's own
+    footprint at the start are passed by (a contact that has happened) and points inside the
+    margin are tested against the footprint itself. The layer's own
     :func:`methd_jax.evaluation.safety_layer.sweep` tests the segments between poses and gives
     the same factors on 90-ray lab scans at these settings, but costs 8x this (4.4 against 0.56 ms
     for 256 scans on a 2-core CPU), and PPO asks the rule about every transition of every epoch."""
     if config.horizon <= 0:
         return jnp.float32(1.0)
     poses = arc(command, config.horizon * jnp.arange(1, config.samples + 1) / config.samples)
-    grown = body + swept_margin(points, body, config.sweep_margin, jnp)
+    grown = body + config.sweep_margin
     in_body = jnp.all(jnp.abs(points) <= body, -1)
+    in_margin = jnp.all(jnp.abs(points) <= grown, -1) & ~in_body
     local = jax.vmap(to_local, (0, None))(poses, points)  # (K, P, 2)
-    hit = jnp.any(jnp.all(jnp.abs(local) <= grown, -1) & ~in_body, axis=-1)  # (K,)
+    met = jnp.where(in_margin, jnp.all(jnp.abs(local) <= body, -1), jnp.all(jnp.abs(local) <= grown, -1))
+    hit = jnp.any(met & ~in_body, axis=-1)  # (K,)
     return jnp.where(jnp.any(hit), jnp.argmax(hit) / config.samples, 1.0)
 
 

@@ -8,7 +8,6 @@ import pytest
 import envs
 from envs.shield import ShieldConfig, free_distance, safe_command, stopping_speed, sweep_scale
 from methd_jax import motion
-from methd_jax.deploy.safety import CLEARANCE_SLACK
 from methd_jax.geometry import KAIROS, ray_directions
 from train import ppo
 
@@ -89,8 +88,7 @@ def _swept(command, points, body, margin, horizon, samples):
     """sweep_scale in numpy: the footprint at each pose of the arc, point by point."""
     vx, vy, w = command
     inside = np.all(np.abs(points) <= body, -1)
-    gap = np.max(np.abs(points) - body, -1)  # the margin shrinks to the nearest point outside
-    margin = min(margin, max(gap[gap > 0].min(initial=np.inf) - CLEARANCE_SLACK, 0.0))
+    ring = np.all(np.abs(points) <= body + margin, -1) & ~inside
     for k in range(1, samples + 1):
         t = horizon * k / samples
         th = w * t
@@ -102,7 +100,8 @@ def _swept(command, points, body, margin, horizon, samples):
         c, s = np.cos(th), np.sin(th)
         d = points - [x, y]
         local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-        if np.any(np.all(np.abs(local) <= body + margin, -1) & ~inside):
+        size = np.where(ring[:, None], body, body + margin)
+        if np.any(np.all(np.abs(local) <= size, -1) & ~inside):
             return (k - 1) / samples
     return 1.0
 
@@ -118,9 +117,8 @@ def test_the_sweep_sees_a_corner_turning_into_a_wall():
     assert float(sweep_scale(turn, wall(0.1), body, cfg)) < 0.5  # a corner swings into it
     assert float(sweep_scale(along, wall(0.1), body, cfg)) == 1.0
     assert np.isinf(free_distance(wall(0.1), jnp.array([1.0, 0.0]), body))  # the stopping rule sees none
-    # within the margin, as the safety layer: the base runs along the wall, but not into it
-    assert float(sweep_scale(along, wall(0.045), body, cfg)) == 1.0
-    assert float(sweep_scale(jnp.array([0.0, 0.5, 0.0]), wall(0.045), body, cfg)) == 0.0
+    # within the margin, as the safety layer: the wall ahead of the front corner counts
+    assert float(sweep_scale(along, wall(0.045), body, cfg)) == 0.0
     rng = np.random.default_rng(5)
     for trial in range(40):
         points = rng.uniform(-2.0, 2.0, (30, 2)).astype(np.float32)

@@ -25,13 +25,9 @@ still would, so stopping is always allowed and moving away from a user who is al
 too.
 
 Points already inside the footprint at t = 0 are ignored (self-returns or a collision that has
-already happened): what is checked is what the command would newly hit. When a point is already
-inside the margin (the base coasted in, or was pushed), the margin swept shrinks to just under that
-point's clearance (:func:`swept_margin`): the base may move where nothing comes nearer than the
-nearest point already is, so it can back away from a close wall or slide along it but not close in
-on it, and a base with a table inside its margin off one corner and a tripod just outside it off the
-other can still leave between them, where a margin held at its full width on the tripod would
-refuse every move.
+already happened): what is checked is what the command would newly hit. Points inside the margin
+but outside the footprint at t = 0 are checked against the footprint itself, so the robot may
+move away from a close wall but never into it.
 
 The sweep takes the base to move as commanded, but a base carries its own velocity for a while
 (its servos' response time, its finite deceleration): told to turn away from a table, it can still
@@ -46,22 +42,6 @@ import dataclasses
 import math
 
 import numpy as np
-
-CLEARANCE_SLACK = 1e-4
-"""m: the margin swept stays this far under the nearest point's clearance, so that point lies off
-the swept box's edge (a point on the edge counts as met by any motion, away from it too). Also
-the most a command can take the base closer to it per horizon."""
-
-
-def swept_margin(points, body, margin, xp=np):
-    """The margin to sweep around the rectangle of half-sizes ``body`` among ``points`` (P, 2):
-    ``margin``, or just under the clearance of the nearest point outside the rectangle when that is
-    smaller (the box test's clearance: the larger of the two axes' gaps; a point inside the
-    rectangle is a contact that has happened and does not count); numpy, or JAX with
-    ``xp=jax.numpy``."""
-    gap = xp.max(xp.abs(points) - body, axis=-1)
-    nearest = xp.min(xp.where(gap > 0, gap, xp.inf), initial=xp.inf)
-    return xp.minimum(margin, xp.maximum(nearest - CLEARANCE_SLACK, 0.0))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -249,12 +229,16 @@ class CollisionMonitor:
         return (np.abs(qx) <= half[0]) & (np.abs(qy) <= half[1])
 
     def _new_points(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The points a motion can newly hit and the half-sizes (hx, hy) of the box they must stay
-        out of: points inside the footprint are dropped (a contact that has happened), the box is
-        the footprint plus :func:`swept_margin`."""
-        in_body = self._inside(np.zeros((1, 3)), points, self.body)[0]
-        hx, hy = self.body + swept_margin(points, self.body, self.config.margin)
-        return points[~in_body], hx, hy
+        """The points a motion can newly hit and the half-sizes (hx, hy), each (P,), of the box each
+        must stay out of: points inside the footprint are dropped (a contact that has happened),
+        points inside the margin are held to the footprint itself, the rest to footprint + margin."""
+        origin = np.zeros((1, 3))
+        in_body = self._inside(origin, points, self.body)[0]
+        in_margin = self._inside(origin, points, self.half)[0] & ~in_body
+        points, in_margin = points[~in_body], in_margin[~in_body]
+        hx = np.where(in_margin, self.body[0], self.half[0])
+        hy = np.where(in_margin, self.body[1], self.half[1])
+        return points, hx, hy
 
     def obstacle_scale(self, command: np.ndarray, points: np.ndarray) -> float:
         """The largest s in [0, 1] whose sweep hits no new scan point."""
@@ -281,7 +265,7 @@ class CollisionMonitor:
             near &= (np.minimum(by, qy) <= hy) & (np.maximum(by, qy) >= -hy)
             k, t, p = np.nonzero(near)
             start, end = np.stack([bx[k, t, p], by[k, t, p]], -1), np.stack([qx[k, t, p], qy[k, t, p]], -1)
-            hit = segment_meets_box(start, end, np.array([hx, hy]))
+            hit = segment_meets_box(start, end, np.stack([hx[p], hy[p]], -1))
             first = np.full(len(todo), len(self.times))
             np.minimum.at(first, k[hit], t[hit])  # each candidate's first colliding step in the chunk
             blocked = first < len(self.times)
@@ -341,7 +325,7 @@ class CollisionMonitor:
         qx, qy = _local(poses, points)  # (T, P)
         end = np.stack([qx, qy], -1)
         start = np.concatenate([points[None], end[:-1]])
-        return not np.any(segment_meets_box(start, end, np.array([hx, hy])))
+        return not np.any(segment_meets_box(start, end, np.stack([hx, hy], -1)[None]))
 
     def brake_scale(
         self, command: np.ndarray, upper: float, velocity: np.ndarray, points: np.ndarray

@@ -314,12 +314,14 @@ def guard(
     The safety layer's obstacle check (:func:`methd_jax.evaluation.safety_layer.slide`, then
     :func:`~methd_jax.evaluation.safety_layer.brake_scale`) over ``guard_horizon`` with
     ``guard_margin``, without its users (the plan keeps them out). Points already inside the
-    footprint are ignored (a contact that has happened) and a point inside the margin shrinks it to
-    just under that point's clearance, so the base may back away from a close wall or run along it
-    but not close in on it. Scaled alone, a command 60 degrees off a wall's normal would be held
-    at the wall for as long as it is given (a base in a passage too narrow for the plan is given
-    that command until it leaves), so the command turned by the slide angles is also tried, as the
-    deployment's layer does, and the one least changed at its own clear factor is sent.
+    footprint are ignored (a contact that has happened) and points inside the margin are checked
+    against the footprint itself, so the base may back away from a close wall but not drive into
+    it. A base whose corner touches a wall has its margin past the wall's surface, so any motion
+    along the wall sweeps the margin into the wall: scaled alone, a command 60 degrees off the
+    wall's normal is held to a creep at the wall for as long as it is given (a base in a passage
+    too narrow for the plan is given that command until it leaves). The command turned by the
+    slide angles is also tried, as the deployment's layer does, and the one least changed at its
+    own clear factor is sent.
 
     The sweep takes the base to move as commanded, but it carries its own velocity for a while
     (the servos' 0.1 s lag and 3 m/s^2): a base whose command turns away from a table can still

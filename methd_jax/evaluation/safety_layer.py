@@ -17,7 +17,7 @@ import numpy as np
 
 from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT
-from methd_jax.deploy.safety import SafetyConfig, candidates, change, reach, segment_meets_box, swept_margin
+from methd_jax.deploy.safety import SafetyConfig, candidates, change, reach, segment_meets_box
 from methd_jax.geometry import KAIROS, scan_points, to_local
 from methd_jax.robot import Servo
 
@@ -64,10 +64,9 @@ def obstacle_scale(command: jax.Array, ranges: jax.Array, horizon: float, time_s
     ``ranges``: a full-circle scan from the base's centre (rays as
     :func:`methd_jax.geometry.ray_angles`). Exact for static points: at factor s the base covers in
     the horizon what the full command covers in s times it, so s is the last clear sample's time over
-    the horizon. Points inside the footprint at t = 0 are ignored (a contact that has happened); a
-    point already inside the margin shrinks it to just under its clearance
-    (:func:`methd_jax.deploy.safety.swept_margin`), so the base may back away from a close wall but
-    not close in on it.
+    the horizon. Points inside the footprint at t = 0 are ignored (a contact that has happened);
+    points inside the margin are checked against the footprint itself, so the base may back away
+    from a close wall but not drive into it.
     """
     return sweep(command, *sorted_points(ranges), horizon, time_step, margin)
 
@@ -90,8 +89,8 @@ def first_hit(poses, ranges, points, margin: float, extents) -> jax.Array:
     """The index of the first of ``poses`` (T, 3) (in the frame of the scan of
     :func:`sorted_points`) at which the footprint plus ``margin``, moving from the origin, newly
     meets a scan point between the previous pose and this one; T if it meets none. Points within
-    the footprint at the origin are ignored and a point within the margin shrinks it (see
-    :func:`obstacle_scale`).
+    the footprint at the origin are ignored and points within the margin are tested against the
+    footprint itself (see :func:`obstacle_scale`).
 
     ``extents`` (T,), nondecreasing: how far from the origin any part of the footprint plus margin
     gets up to each pose. The path is tested BLOCK samples at a time, each block against only the
@@ -99,7 +98,7 @@ def first_hit(poses, ranges, points, margin: float, extents) -> jax.Array:
     stops at the first block with a hit: a base stopped early by a wall tests the few samples and
     points before the contact, not the whole horizon against every point it could reach."""
     body = jnp.asarray(KAIROS.half_extents)
-    half = body + swept_margin(points, body, margin, jnp)  # the padding, 1 km off, counts for nothing
+    half = body + margin
     steps = poses.shape[0]
     blocks = -(-steps // BLOCK)
     pad = blocks * BLOCK - steps
@@ -116,8 +115,10 @@ def first_hit(poses, ranges, points, margin: float, extents) -> jax.Array:
             pts = jax.lax.dynamic_slice_in_dim(points, c * CHUNK, CHUNK)
             valid = c * CHUNK + jnp.arange(CHUNK) < needed
             in_body = jnp.all(jnp.abs(pts) <= body, -1)
+            in_margin = jnp.all(jnp.abs(pts) <= half, -1) & ~in_body
             local = jax.vmap(to_local, (0, None))(segment, pts)  # (BLOCK + 1, CHUNK, 2)
-            hit = segment_meets_box(local[:-1], local[1:], half, jnp) & valid & ~in_body
+            hit = segment_meets_box(local[:-1], local[1:], half, jnp) & valid & ~in_body & ~in_margin
+            hit |= segment_meets_box(local[:-1], local[1:], body, jnp) & valid & in_margin
             return jnp.any(hit, axis=1)
 
         _, hit = jax.lax.while_loop(
