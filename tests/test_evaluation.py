@@ -1,5 +1,6 @@
 """The evaluation harness: navigator, behaviour engine, metrics, statistics, ``python -m train.evaluate``."""
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -472,7 +473,7 @@ def test_escape_point_never_inside_an_obstacle():
     cfg = E.EngineConfig()
     pose = jnp.array([-0.2, 0.0, 0.0])
     users = jnp.array([[-1.5, 0.0]])
-    goal, found = E.escape_point(pose, users, jnp.array([True]), box, grid, cfg)
+    goal, found = E.escape_point(pose, users, jnp.zeros((1, 2)), jnp.array([True]), box, grid, cfg)
     assert bool(found)
     assert bool(floors.is_free(box, goal[:2], 0.77))
     assert abs(float(goal[1])) > 0.5  # turned aside
@@ -482,12 +483,87 @@ def test_escape_point_never_inside_an_obstacle():
     key = jax.random.key(3)
     poses = jax.random.uniform(key, (200, 3), minval=jnp.array([-5, -6, -3]), maxval=jnp.array([5, 6, 3]))
     offs = jax.random.normal(jax.random.key(4), (200, 1, 2))
-    goals, ok = jax.vmap(lambda p, u: E.escape_point(p, p[:2] + u, jnp.array([True]), lab, lgrid, cfg))(
-        poses, offs
-    )
+    goals, ok = jax.vmap(
+        lambda p, u: E.escape_point(p, p[:2] + u, jnp.zeros((1, 2)), jnp.array([True]), lab, lgrid, cfg)
+    )(poses, offs)
     free = jax.vmap(lambda g: floors.is_free(lab, g[:2], 0.77))(goals)
     assert np.asarray(ok).sum() > 50
     assert np.all(np.asarray(free)[np.asarray(ok)])
+
+
+def _escape_gap(pose, goal, user, vel, cfg, horizon=2.0):
+    """Closest centre distance over ``horizon`` (numpy, 1 ms steps) between a base driving straight
+    from ``pose`` to ``goal`` (from rest, escape speed and acceleration, then parked) and a user
+    walking on at ``vel``."""
+    n = cfg.navigator
+    t = np.arange(0.0, horizon + 1e-9, 0.001)
+    ramp = n.escape_speed / n.escape_accel
+    s = np.where(
+        t < ramp, 0.5 * n.escape_accel * t**2, 0.5 * n.escape_speed * ramp + n.escape_speed * (t - ramp)
+    )
+    start, goal = np.asarray(pose[:2], float), np.asarray(goal[:2], float)
+    r = np.linalg.norm(goal - start)
+    base = start + np.minimum(s, r)[:, None] * (goal - start) / r
+    return float(np.linalg.norm(base - (np.asarray(user) + t[:, None] * np.asarray(vel)), axis=1).min())
+
+
+def test_escape_point_keeps_clear_of_where_the_user_walks():
+    # straight back is a box; a standing user gets the point 90 degrees to the north, but a user
+    # walking north would meet the base there: the point is the one to the south
+    box = open_floor(polygons=[[(1.0, -0.6), (3.5, -0.6), (3.5, 0.6), (1.0, 0.6)]])
+    grid = nav.costmap(box)
+    cfg = E.EngineConfig()
+    pose = jnp.array([0.0, 0.0, 0.0])
+    user, north = jnp.array([[-1.4, -0.3]]), jnp.array([[0.0, 1.2]])
+    here = jnp.array([True])
+    stand, found = E.escape_point(pose, user, jnp.zeros((1, 2)), here, box, grid, cfg)
+    assert bool(found) and float(stand[1]) > 1.0
+    assert _escape_gap(pose, stand, user[0], north[0], cfg) < cfg.escape_pass  # too near a walker
+    walking, found = E.escape_point(pose, user, north, here, box, grid, cfg)
+    assert bool(found) and float(walking[1]) < -1.0
+    assert _escape_gap(pose, walking, user[0], north[0], cfg) >= cfg.escape_pass - 0.01
+    # the check is the drive's: with escape_pass 0 the walking user is not looked at
+    blind, _ = E.escape_point(pose, user, north, here, box, grid, dataclasses.replace(cfg, escape_pass=0.0))
+    np.testing.assert_allclose(blind, stand)
+
+
+def test_escape_point_declines_a_user_it_cannot_outrun_and_frees_a_near_one():
+    free = open_floor()
+    grid = nav.costmap(free)
+    cfg = E.EngineConfig()
+    pose, here = jnp.zeros(3), jnp.array([True])
+    # 1.2 m away and closing at 1.5 m/s: every way out meets the user, so Inform (the users stop)
+    _, found = E.escape_point(pose, jnp.array([[-1.2, 0.0]]), jnp.array([[1.5, 0.0]]), here, free, grid, cfg)
+    assert not bool(found)
+    # the same user standing 0.9 m away (nearer than escape_pass): straight back, which only widens
+    goal, found = E.escape_point(pose, jnp.array([[-0.9, 0.0]]), jnp.zeros((1, 2)), here, free, grid, cfg)
+    assert bool(found)
+    np.testing.assert_allclose(goal[:2], [1.5, 0.0], atol=1e-5)
+    # an absent user is not escaped from, walking or not
+    two = jnp.array([[-1.2, 0.0], [3.0, 3.0]])
+    goal, found = E.escape_point(
+        pose, two, jnp.array([[0.0, 0.0], [-2.0, -2.0]]), jnp.array([True, False]), free, grid, cfg
+    )
+    assert bool(found)
+    np.testing.assert_allclose(goal[:2], [1.5, 0.0], atol=1e-5)
+
+
+def test_escape_drives_straight_to_its_point():
+    # a parked Static base, a user walking at it: the base's way in Escape is the straight line the
+    # escape point was checked along, not a plan bent by the costmap (a wall 1 m to the south)
+    wall = open_floor(polygons=[[(-6.0, -2.3), (6.0, -2.3), (6.0, -2.0), (-6.0, -2.0)]])
+    traj = walk([(-4.0, 0.3), (2.0, 0.3)], [1.0], request_at_end=False, hold=1.0)
+    res, rec = run(M.Static(), [traj], wall, (0.0, -0.8, 0.0), steps=50 * 8)
+    mode = rec["mode"]
+    assert res["escapes"][0] >= 1 and res["collisions_user"][0] == 0
+    first = np.flatnonzero(mode == E.ESCAPE)
+    end = first[0] + np.argmax(mode[first[0] :] != E.ESCAPE)
+    way = rec["pose"][first[0] - 1 : end, :2]
+    a, b = way[0], way[-1]
+    assert np.linalg.norm(b - a) > 0.8  # it went somewhere
+    u = (b - a) / np.linalg.norm(b - a)
+    off = np.abs((way - a) @ np.array([-u[1], u[0]]))
+    assert off.max() < 0.03
 
 
 def test_blocked_robot_goes_to_inform_and_recovers():

@@ -7,9 +7,11 @@ Behaviours (``MODES``):
 - **Haptic**: on a request the navigator drives the base to the requester's HIP (0.2 m, 0.1 rad);
   then **Arm** holds still for T_arm = 3.3 s and the request counts as served.
 - **Escape**: whenever a user comes closer than 1.5 m (Chase or Haptic), the robot drives to an
-  escape point behind it along the user->robot direction, the first collision-free candidate of
-  a fixed list (straight back first, then turned by up to 90 degrees); after it, back to Chase (or
-  Haptic if a request is pending). An escape that has not arrived after 5 s goes to Inform.
+  escape point behind it along the user->robot direction, the first free candidate of a fixed list
+  (straight back first, then turned by up to 120 degrees): free of furniture, 2 m from every user,
+  and with a straight way there that keeps clear of every user as they walk on; the base drives
+  that straight way. After it, back to Chase (or Haptic if a request is pending). An escape that
+  has not arrived after 5 s goes to Inform.
 - **Inform**: no escape point exists: the users stop; the robot looks for an escape point again
   every second; after 10 s the users walk back along their trajectories until the robot is
   unstuck (thesis §5.1): until a look finds an escape point, which the robot then drives to, or
@@ -64,6 +66,12 @@ class EngineConfig:
     """Escape distances tried in order for each direction, m."""
     escape_clearance: float = 2.0
     """An escape point is at least this far from every user, m."""
+    escape_pass: float = 1.1
+    """On the way to an escape point and standing there until ``escape_horizon``, the base's centre
+    keeps this far from every user walking on at their current velocity (the footprint's 0.77 m
+    radius, a user's 0.25 m and 0.08 m to spare); a base already nearer must not come nearer, m."""
+    escape_horizon: float = 2.0
+    """How far ahead the users' walk is checked against an escape's way, s."""
     escape_timeout: float = 5.0
     """An escape that has not arrived by then turns into Inform, s."""
     inform_wait: float = 10.0
@@ -92,7 +100,14 @@ class EngineConfig:
     def __post_init__(self):
         if len(self.escape_angles) == 0 or len(self.escape_distances) == 0:
             raise ValueError("escape_angles and escape_distances must not be empty")
-        for name in ("escape_distance", "escape_timeout", "inform_wait", "arm_time", "serve_timeout"):
+        for name in (
+            "escape_distance",
+            "escape_timeout",
+            "escape_horizon",
+            "inform_wait",
+            "arm_time",
+            "serve_timeout",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"EngineConfig.{name} must be positive, got {getattr(self, name)}")
 
@@ -216,6 +231,7 @@ def mu_schedule(bank: MotionBank, starts: np.ndarray, offset: int, trajectories=
 def escape_point(
     pose: jax.Array,
     users_xy: jax.Array,
+    users_vel: jax.Array,
     present: jax.Array,
     floor: Floor,
     grid: nav.Costmap,
@@ -224,7 +240,10 @@ def escape_point(
     """The first free escape candidate (pose (3,), found) behind the robot, away from the closest user.
 
     A candidate is free when the footprint fits there, the straight way to it crosses no lethal
-    cell and it is ``escape_clearance`` from every user.
+    cell, it is ``escape_clearance`` from every user, and the base driving there straight (from
+    rest, at the navigator's escape speed and acceleration) and waiting there keeps
+    ``escape_pass`` from every user for ``escape_horizon`` while they walk on at ``users_vel``
+    (U, 2): a point clear of where a user stands but across where they walk is not an escape.
     """
     d = jnp.where(present, jnp.linalg.norm(users_xy - pose[:2], axis=1), jnp.inf)
     away = pose[:2] - users_xy[jnp.argmin(d)]
@@ -232,12 +251,28 @@ def escape_point(
     ang = base + jnp.deg2rad(jnp.asarray(cfg.escape_angles))
     dist = jnp.asarray(cfg.escape_distances)
     a, r = jnp.meshgrid(ang, dist, indexing="ij")  # direction-major: all distances of one angle first
-    pts = pose[:2] + jnp.stack([r * jnp.cos(a), r * jnp.sin(a)], -1).reshape(-1, 2)
+    heading = jnp.stack([jnp.cos(a), jnp.sin(a)], -1).reshape(-1, 2)
+    r = r.reshape(-1)
+    pts = pose[:2] + r[:, None] * heading
     free = jax.vmap(lambda p: floors.is_free(floor, p, KAIROS.radius))(pts)
     clear = jax.vmap(lambda p: nav.segment_clear(grid, pose[:2], p))(pts)
     du = jnp.linalg.norm(pts[:, None] - users_xy[None], axis=-1)
     far = jnp.all(jnp.where(present[None], du >= cfg.escape_clearance, True), axis=1)
-    ok = free & clear & far
+    # the way: the base's distance along it at times t (accelerating, then cruising, then parked)
+    ncfg = cfg.navigator
+    t = jnp.linspace(0.0, cfg.escape_horizon, round(cfg.escape_horizon * 20) + 1)  # 50 ms
+    ramp = ncfg.escape_speed / ncfg.escape_accel
+    run = jnp.where(
+        t < ramp,
+        0.5 * ncfg.escape_accel * t**2,
+        0.5 * ncfg.escape_speed * ramp + ncfg.escape_speed * (t - ramp),
+    )
+    at = pose[:2] + jnp.minimum(run[None], r[:, None])[..., None] * heading[:, None]  # (C, T, 2)
+    walk = users_xy[:, None] + t[None, :, None] * users_vel[:, None]  # (U, T, 2)
+    gap = jnp.linalg.norm(at[:, :, None] - walk[None].swapaxes(1, 2), axis=-1)  # (C, T, U)
+    keep = jnp.minimum(cfg.escape_pass, d) - 1e-3  # a base already nearer must not come nearer
+    passes = jnp.all(jnp.where(present, gap >= keep, True), axis=(1, 2))
+    ok = free & clear & far & passes
     best = jnp.argmax(ok)
     return jnp.concatenate([pts[best], pose[2:3]]), jnp.any(ok)
 
@@ -421,9 +456,11 @@ class Engine:
         # Escape trigger (Chase, Haptic) and Inform's retries
         trigger = ((mode == CHASE) | (mode == HAPTIC)) & (closest < cfg.escape_distance)
         retry = (mode == INFORM) & (mode_t > 0) & (mode_t % cfg.steps(cfg.inform_retry) == 0)
+        # in Escape the users walk on forward, whatever they did in Inform (stand, walk back)
+        ahead = self.bank.vel_world[trajs, jnp.clip(s.play, 0, self.bank.max_steps - 1), :2]
         goal_e, found = jax.lax.cond(  # 27 candidates' free-space tests, only when needed
             trigger | retry,
-            lambda: escape_point(pose, users_xy, present, self.floor, self.grid, cfg),
+            lambda: escape_point(pose, users_xy, ahead, present, self.floor, self.grid, cfg),
             lambda: (s.escape_goal, jnp.bool_(False)),
         )
         resume = jnp.where(trigger, mode, resume)
@@ -454,19 +491,22 @@ class Engine:
         method_state, order = jax.lax.cond(mode == CHASE, chase, idle, s.method)
         navigating = (mode == HAPTIC) | (mode == ESCAPE) | ((mode == CHASE) & order.navigate)
         goal = jnp.where(mode == HAPTIC, hip, jnp.where(mode == ESCAPE, escape_goal, order.goal))
-        periodic = (mode != ESCAPE) & (s.plan_t >= cfg.steps(cfg.replan_period))
-        replan = navigating & ((jnp.linalg.norm(goal[:2] - s.plan_goal[:2]) > 0.1) | periodic)
-        keepout = jnp.concatenate(
-            [users_xy, jnp.where(present & (mode != ESCAPE), cfg.user_keepout, 0.0)[:, None]], 1
-        )
+        # Escape drives straight, the way escape_point checked against furniture and the users'
+        # walk (a plan bent by the costmap's inflation drove into walking users); the rest plans
+        periodic = s.plan_t >= cfg.steps(cfg.replan_period)
+        moved_goal = jnp.linalg.norm(goal[:2] - s.plan_goal[:2]) > 0.1
+        replan = navigating & (mode != ESCAPE) & (moved_goal | periodic | (s.mode == ESCAPE))
+        keepout = jnp.concatenate([users_xy, jnp.where(present, cfg.user_keepout, 0.0)[:, None]], 1)
         field = jax.lax.cond(
             replan, lambda: nav.distance_field(self.grid, goal[:2], keepout), lambda: s.field
         )
         plan_goal = jnp.where(replan, goal, s.plan_goal)
         plan_t = jnp.where(replan, 0, s.plan_t + 1)
-        speed = jnp.where(mode == ESCAPE, ncfg.escape_speed, ncfg.max_speed)
-        accel = jnp.where(mode == ESCAPE, ncfg.escape_accel, ncfg.max_accel)
-        _, nav_local = nav.follow(self.grid, field, pose, s.nav_command, goal, ncfg, speed, accel)
+        _, nav_local = jax.lax.cond(
+            mode == ESCAPE,
+            lambda: nav.straight(pose, s.nav_command, goal, ncfg, ncfg.escape_speed, ncfg.escape_accel),
+            lambda: nav.follow(self.grid, field, pose, s.nav_command, goal, ncfg),
+        )
         _, brake_local = nav.stop(s.nav_command, pose, ncfg)
         # the navigator's and the brake's commands pass the footprint guard (the thesis's ROS
         # stack checked its footprint); a method's own commands are the method's responsibility

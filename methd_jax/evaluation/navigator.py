@@ -237,7 +237,6 @@ def follow(
     command (to pass back next step) and the same in the robot frame (for the base). A goal whose
     field is unreachable from here gets a stop.
     """
-    dt = CONTROL_DT
     speed = cfg.max_speed if speed is None else speed
     accel = cfg.max_accel if accel is None else accel
     to_goal = goal[:2] - pose[:2]
@@ -263,8 +262,31 @@ def follow(
     open_dir = open_pt / jnp.maximum(jnp.linalg.norm(open_pt), 1e-9)
     heading = jnp.where(lost, open_dir, heading)
     v_max = jnp.where(lost, jnp.minimum(v_max, cfg.recovery_speed), v_max)
-    v_des = jnp.where(d_goal < 0.02, 0.0, v_max) * heading
+    return _ramp(pose, previous, goal, heading, v_max, d_goal, cfg, accel)
 
+
+def straight(
+    pose: jax.Array,
+    previous: jax.Array,
+    goal: jax.Array,
+    cfg: NavigatorConfig,
+    speed: jax.Array | float,
+    accel: jax.Array | float,
+) -> tuple[jax.Array, jax.Array]:
+    """One control step straight at ``goal`` (commands as :func:`follow`'s), for a way the caller
+    has checked clear (Escape's, :func:`segment_clear`): no plan, so the base goes where the check
+    looked."""
+    to_goal = goal[:2] - pose[:2]
+    d_goal = jnp.linalg.norm(to_goal)
+    heading = to_goal / jnp.maximum(d_goal, 1e-9)
+    v_max = jnp.minimum(speed, jnp.sqrt(2.0 * accel * jnp.maximum(d_goal - 0.02, 0.0)))
+    return _ramp(pose, previous, goal, heading, v_max, d_goal, cfg, accel)
+
+
+def _ramp(pose, previous, goal, heading, v_max, d_goal, cfg, accel):
+    """The command toward velocity ``v_max * heading`` and the goal's yaw, within the limits."""
+    dt = CONTROL_DT
+    v_des = jnp.where(d_goal < 0.02, 0.0, v_max) * heading
     dyaw = wrap_angle(goal[2] - pose[2])
     w_des = jnp.sign(dyaw) * jnp.minimum(
         jnp.minimum(cfg.yaw_gain * jnp.abs(dyaw), jnp.sqrt(2.0 * cfg.max_yaw_accel * jnp.abs(dyaw))),
