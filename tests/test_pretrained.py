@@ -58,8 +58,9 @@ def first_ten():
 def test_shipped_policy_on_the_first_ten_held_out_trajectories(first_ten):
     """The shipped policy as deployed (with the safety layer) beats the Heuristic's T_pos, leaves no
     obstacle contact and serves every request. DRL alone is not run here (one engine fewer to
-    compile): it grazes furniture (8 contacts in the 100, none in these 10, docs/results.md), and its
-    row and the layer's effect on user contacts are python -m train.evaluate's."""
+    compile): it grazes furniture (7 contacts in the 100, one of them in these 10, trajectory 8;
+    docs/results.md), and its row and the layer's effect on user contacts are python -m
+    train.evaluate's."""
     safe, heuristic = first_ten["SU DRL + safety"], first_ten["SU Heuristic"]
     print({k: {m: v[m] for m in ("t_pos", "served", "collisions_obstacle")} for k, v in first_ten.items()})
     assert safe["t_pos"][0] < heuristic["t_pos"][0]

@@ -19,7 +19,7 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            (``env.safety.collision_margin``: without it corners graze furniture between two
            rays, which the evaluation's 720 rays count), no entropy bonus and an initial log-std
            of -0.5 (with skrl's 0.005 and 0 the std grew to ~1.3 and stayed there). The
-           shipped policy (``assets/pretrained/su``) is five stages of it: 2,200 iterations with
+           shipped policy (``assets/pretrained/su``) is seven stages of it: 2,200 iterations with
            ``env.safety.collision_margin=0``, then 1,119 from that checkpoint (``init_from=``),
            then 408 with a 10 cm margin and the lab twin in half the episodes (fewer grazed
            corners on the lab's furniture, which the evaluation counts), then 2,616 more from
@@ -29,7 +29,12 @@ Presets (Table 4.4 for ``su``, ``nav`` and ``guide``):
            then 1,716 more from that policy, its settings and the critical-zone penalty at -60 per step
            (Table 4.1: -20; the fourth stage kept off furniture by letting walking users close in,
            behind the safety layer 712 s within d_crit on the lab's 100 test trajectories, the
-           fifth 51 s); 66M transitions, 195 min as measured on three machines. The first four run end
+           fifth 51 s), then 1,864 more with the obstacles' inflation layer at 0.25 m
+           (``env.safety.inflation_distance=0.25``: the fifth stopped short of HIPs near furniture,
+           outside the 0.5 m layer), then 1,400 more from that run with p_s at -300 and seed 1,
+           exported as the average of its checkpoints 1,000, 1,200 and 1,400 (chosen on fresh
+           validation trajectories; with seed 2 the same stage ended further from the HIP); 93M
+           transitions, 257 min as measured on three or four machines. The first four run end
            to end on one machine took 99 min and gave a policy that keeps its distance (T_pos
            3.2 s): the recipe's outcome varies from run to run. Commands, figures and what did
            not work: ``docs/results.md`` and the card.
@@ -270,7 +275,7 @@ PRESETS: dict[str, tuple[str, RunConfig]] = {
     "su_cpu": (
         "SU for the 2-core CPU: procedural floors with obstacles and the lab twin (30%), the 342 "
         "training trajectories, 90 rays, a 3 x 256 body, the goal kept clear of obstacles; the "
-        "shipped policy's recipe (five stages, the last two with env.weights.stopping: docs/results.md)",
+        "shipped policy's recipe (seven stages, the last four with env.weights.stopping: docs/results.md)",
         _SU_CPU,
     ),
     "guide_cpu": (
