@@ -525,6 +525,10 @@ def test_escape_point_keeps_clear_of_where_the_user_walks():
     # the check is the drive's: with escape_pass 0 the walking user is not looked at
     blind, _ = E.escape_point(pose, user, north, here, box, grid, dataclasses.replace(cfg, escape_pass=0.0))
     np.testing.assert_allclose(blind, stand)
+    with pytest.raises(ValueError, match="escape_pass"):
+        E.EngineConfig(escape_pass=-0.1)
+    with pytest.raises(ValueError, match="escape_horizon"):
+        E.EngineConfig(escape_horizon=0.0)
 
 
 def test_escape_point_declines_a_user_it_cannot_outrun_and_frees_a_near_one():

@@ -110,6 +110,8 @@ class EngineConfig:
         ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"EngineConfig.{name} must be positive, got {getattr(self, name)}")
+        if not self.escape_pass >= 0:
+            raise ValueError(f"EngineConfig.escape_pass must be >= 0, got {self.escape_pass}")
 
     def steps(self, seconds: float) -> int:
         return max(1, round(seconds * CONTROL_HZ))

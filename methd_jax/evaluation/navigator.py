@@ -228,17 +228,14 @@ def follow(
     previous: jax.Array,
     goal: jax.Array,
     cfg: NavigatorConfig,
-    speed: jax.Array | float | None = None,
-    accel: jax.Array | float | None = None,
 ) -> tuple[jax.Array, jax.Array]:
-    """One control step toward ``goal`` along ``field``.
+    """One control step toward ``goal`` along ``field`` at the cruise limits.
 
     ``previous`` is the last command in the world frame (vx, vy, wz); returns the new world-frame
     command (to pass back next step) and the same in the robot frame (for the base). A goal whose
     field is unreachable from here gets a stop.
     """
-    speed = cfg.max_speed if speed is None else speed
-    accel = cfg.max_accel if accel is None else accel
+    speed, accel = cfg.max_speed, cfg.max_accel
     to_goal = goal[:2] - pose[:2]
     d_goal = jnp.linalg.norm(to_goal)
     here = grid.lookup(field, pose[:2])
