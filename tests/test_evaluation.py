@@ -491,20 +491,24 @@ def test_escape_point_never_inside_an_obstacle():
     assert np.all(np.asarray(free)[np.asarray(ok)])
 
 
-def _escape_gap(pose, goal, user, vel, cfg, horizon=2.0):
-    """Closest centre distance over ``horizon`` (numpy, 1 ms steps) between a base driving straight
-    from ``pose`` to ``goal`` (from rest, escape speed and acceleration, then parked) and a user
-    walking on at ``vel``."""
+def _escape_gap(pose, goal, user, vel, cfg, horizon=2.0, base_vel=(0.0, 0.0)):
+    """Closest centre distance over ``horizon`` (numpy, 1 ms Euler steps) between a base driving
+    at ``goal`` (its velocity rate-limited from ``base_vel`` toward the escape speed along the line,
+    parked once there) and a user walking on at ``vel``."""
     n = cfg.navigator
-    t = np.arange(0.0, horizon + 1e-9, 0.001)
-    ramp = n.escape_speed / n.escape_accel
-    s = np.where(
-        t < ramp, 0.5 * n.escape_accel * t**2, 0.5 * n.escape_speed * ramp + n.escape_speed * (t - ramp)
-    )
-    start, goal = np.asarray(pose[:2], float), np.asarray(goal[:2], float)
+    dt = 0.001
+    start, goal, user = (np.asarray(x, float)[:2] for x in (pose, goal, user))
     r = np.linalg.norm(goal - start)
-    base = start + np.minimum(s, r)[:, None] * (goal - start) / r
-    return float(np.linalg.norm(base - (np.asarray(user) + t[:, None] * np.asarray(vel)), axis=1).min())
+    heading = (goal - start) / r
+    p, v, parked, gap = start.copy(), np.asarray(base_vel, float), False, np.inf
+    for k in range(round(horizon / dt) + 1):
+        gap = min(gap, float(np.linalg.norm(p - (user + k * dt * np.asarray(vel)))))
+        dv = n.escape_speed * heading - v
+        v = v + dv * min(1.0, n.escape_accel * dt / max(np.linalg.norm(dv), 1e-12))
+        p = goal if parked else p + v * dt
+        parked = parked or float((p - start) @ heading) >= r
+        p = goal if parked else p
+    return gap
 
 
 def test_escape_point_keeps_clear_of_where_the_user_walks():
@@ -550,6 +554,30 @@ def test_escape_point_declines_a_user_it_cannot_outrun_and_frees_a_near_one():
     )
     assert bool(found)
     np.testing.assert_allclose(goal[:2], [1.5, 0.0], atol=1e-5)
+
+
+def test_escape_point_allows_for_the_base_s_momentum():
+    # the base runs at the user at 1 m/s when Escape starts: from rest, straight back would keep
+    # clear, but reversing 1 m/s first carries the base toward the user, so another way is taken
+    free = open_floor()
+    grid = nav.costmap(free)
+    cfg = E.EngineConfig()
+    pose, here = jnp.zeros(3), jnp.array([True])
+    user, walk_at = jnp.array([[-1.3, 0.0]]), jnp.array([[0.8, 0.0]])
+    rest, found = E.escape_point(pose, user, walk_at, here, free, grid, cfg)
+    assert bool(found)
+    np.testing.assert_allclose(rest[:2], [1.5, 0.0], atol=1e-5)
+    assert _escape_gap(pose, rest, user[0], walk_at[0], cfg) >= cfg.escape_pass - 0.01
+    toward = (-1.0, 0.0)
+    assert _escape_gap(pose, rest, user[0], walk_at[0], cfg, base_vel=toward) < cfg.escape_pass
+    moving, found = E.escape_point(pose, user, walk_at, here, free, grid, cfg, jnp.array(toward))
+    if bool(found):  # another point, which keeps clear in the numpy drive too
+        assert float(jnp.linalg.norm(moving[:2] - rest[:2])) > 0.1
+        gap = _escape_gap(pose, moving, user[0], walk_at[0], cfg, base_vel=toward)
+        assert gap >= cfg.escape_pass - 0.02
+    # at rest the drive model is the same whatever zero velocity is passed
+    again, _ = E.escape_point(pose, user, walk_at, here, free, grid, cfg, jnp.zeros(2))
+    np.testing.assert_allclose(again, rest)
 
 
 def test_escape_drives_straight_to_its_point():

@@ -238,14 +238,17 @@ def escape_point(
     floor: Floor,
     grid: nav.Costmap,
     cfg: EngineConfig,
+    base_vel: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """The first free escape candidate (pose (3,), found) behind the robot, away from the closest user.
 
     A candidate is free when the footprint fits there, the straight way to it crosses no lethal
-    cell, it is ``escape_clearance`` from every user, and the base driving there straight (from
-    rest, at the navigator's escape speed and acceleration) and waiting there keeps
-    ``escape_pass`` from every user for ``escape_horizon`` while they walk on at ``users_vel``
-    (U, 2): a point clear of where a user stands but across where they walk is not an escape.
+    cell, it is ``escape_clearance`` from every user, and the base driving there (its velocity
+    turning from ``base_vel``, world frame (2,), default at rest, to the escape speed toward the
+    point at the escape acceleration, then parked there) keeps ``escape_pass`` from every user for
+    ``escape_horizon`` while they walk on at ``users_vel`` (U, 2): a point clear of where a user
+    stands but across where they walk, or one the base's momentum carries it toward a user on the
+    way to, is not an escape.
     """
     d = jnp.where(present, jnp.linalg.norm(users_xy - pose[:2], axis=1), jnp.inf)
     away = pose[:2] - users_xy[jnp.argmin(d)]
@@ -260,16 +263,18 @@ def escape_point(
     clear = jax.vmap(lambda p: nav.segment_clear(grid, pose[:2], p))(pts)
     du = jnp.linalg.norm(pts[:, None] - users_xy[None], axis=-1)
     far = jnp.all(jnp.where(present[None], du >= cfg.escape_clearance, True), axis=1)
-    # the way: the base's distance along it at times t (accelerating, then cruising, then parked)
+    # the way (navigator.straight's): the velocity turns linearly from base_vel to the escape
+    # speed toward the point, then cruises; the base parks at the point once it gets that far
     ncfg = cfg.navigator
+    v0 = jnp.zeros(2) if base_vel is None else base_vel[:2]
     t = jnp.linspace(0.0, cfg.escape_horizon, round(cfg.escape_horizon * 20) + 1)  # 50 ms
-    ramp = ncfg.escape_speed / ncfg.escape_accel
-    run = jnp.where(
-        t < ramp,
-        0.5 * ncfg.escape_accel * t**2,
-        0.5 * ncfg.escape_speed * ramp + ncfg.escape_speed * (t - ramp),
-    )
-    at = pose[:2] + jnp.minimum(run[None], r[:, None])[..., None] * heading[:, None]  # (C, T, 2)
+    tc = t[None, :, None]
+    dv = (ncfg.escape_speed * heading - v0)[:, None]  # (C, 1, 2)
+    ramp = jnp.maximum(jnp.linalg.norm(dv, axis=-1, keepdims=True) / ncfg.escape_accel, 1e-6)
+    tr = jnp.minimum(tc, ramp)
+    at = pose[:2] + v0 * tc + dv * (tr * (tc - 0.5 * tr)) / ramp  # (C, T, 2)
+    arrived = jnp.cumsum(jnp.sum((at - pose[:2]) * heading[:, None], -1) >= r[:, None], axis=1) > 0
+    at = jnp.where(arrived[..., None], pts[:, None], at)
     walk = users_xy[:, None] + t[None, :, None] * users_vel[:, None]  # (U, T, 2)
     gap = jnp.linalg.norm(at[:, :, None] - walk[None].swapaxes(1, 2), axis=-1)  # (C, T, U)
     keep = jnp.minimum(cfg.escape_pass, d) - 1e-3  # a base already nearer must not come nearer
@@ -462,7 +467,9 @@ class Engine:
         ahead = self.bank.vel_world[trajs, jnp.clip(s.play, 0, self.bank.max_steps - 1), :2]
         goal_e, found = jax.lax.cond(  # 27 candidates' free-space tests, only when needed
             trigger | retry,
-            lambda: escape_point(pose, users_xy, ahead, present, self.floor, self.grid, cfg),
+            lambda: escape_point(
+                pose, users_xy, ahead, present, self.floor, self.grid, cfg, s.robot.qvel[:2]
+            ),
             lambda: (s.escape_goal, jnp.bool_(False)),
         )
         resume = jnp.where(trigger, mode, resume)
