@@ -68,7 +68,7 @@ class EngineConfig:
     """An escape point is at least this far from every user, m."""
     escape_pass: float = 1.1
     """On the way to an escape point and standing there until ``escape_horizon``, the base's centre
-    keeps this far from every user walking on at their current velocity (the footprint's 0.77 m
+    keeps this far from every user walking on at their forward velocity (the footprint's 0.77 m
     radius, a user's 0.25 m and 0.08 m to spare); a base already nearer must not come nearer, m."""
     escape_horizon: float = 2.0
     """How far ahead the users' walk is checked against an escape's way, s."""
@@ -463,15 +463,14 @@ class Engine:
         # Escape trigger (Chase, Haptic) and Inform's retries
         trigger = ((mode == CHASE) | (mode == HAPTIC)) & (closest < cfg.escape_distance)
         retry = (mode == INFORM) & (mode_t > 0) & (mode_t % cfg.steps(cfg.inform_retry) == 0)
-        # in Escape the users walk on forward, whatever they did in Inform (stand, walk back)
-        ahead = self.bank.vel_world[trajs, jnp.clip(s.play, 0, self.bank.max_steps - 1), :2]
-        goal_e, found = jax.lax.cond(  # 27 candidates' free-space tests, only when needed
-            trigger | retry,
-            lambda: escape_point(
-                pose, users_xy, ahead, present, self.floor, self.grid, cfg, s.robot.qvel[:2]
-            ),
-            lambda: (s.escape_goal, jnp.bool_(False)),
-        )
+
+        def look():
+            # in Escape the users walk on forward, whatever they did in Inform (stand, walk back)
+            ahead = self.bank.vel_world[trajs, jnp.clip(s.play, 0, self.bank.max_steps - 1), :2]
+            return escape_point(pose, users_xy, ahead, present, self.floor, self.grid, cfg, s.robot.qvel[:2])
+
+        # 27 candidates' free-space and drive tests, only when needed
+        goal_e, found = jax.lax.cond(trigger | retry, look, lambda: (s.escape_goal, jnp.bool_(False)))
         resume = jnp.where(trigger, mode, resume)
         to_escape = (trigger | retry) & found
         to_inform = trigger & ~found
