@@ -632,6 +632,23 @@ def test_escape_moves_a_base_that_touches_furniture():
     assert res["collisions_user"][0] == 0 and res["collisions_obstacle"][0] == 0
 
 
+def test_a_user_placed_on_the_base_is_not_a_collision_until_they_meet_again():
+    # Escape out of the way (a 1 mm trigger): a Static base and a user whose recording starts
+    # 0.3 m from its centre, inside the footprint. Placed there by the schedule, the user is no
+    # collision; walking away and back into the base is one
+    cfg = E.EngineConfig(escape_distance=1e-3)
+    away = walk([(0.3, 0.0), (3.0, 0.0)], [1.0], request_at_end=False, hold=1.0)
+    back = walk([(0.3, 0.0), (3.0, 0.0), (0.0, 0.0)], [1.0, 1.0], request_at_end=False, hold=1.0)
+    through = walk([(3.0, 0.0), (0.0, 0.0)], [1.0], request_at_end=False, hold=1.0)
+    counts = []
+    for traj in (away, back, through):
+        res, rec = run(M.Static(), [traj], open_floor(), (0.0, 0.0, 0.0), steps=50 * 7, cfg=cfg)
+        counts.append(res["collisions_user"][0])
+        if traj is not through:
+            assert rec["touching"][0, 1]  # in contact from the first step all the same
+    assert counts == [0, 1, 1]
+
+
 def test_escape_drives_straight_to_its_point():
     # a parked Static base, a user walking at it: the base's way in Escape is the straight line the
     # escape point was checked along, not a plan bent by the costmap (a wall 1 m to the south)

@@ -374,6 +374,13 @@ class Engine:
         reset = schedule.reset[kk]
         fresh = self.robot.init(schedule.start[kk])
         robot = jax.tree.map(lambda a, b: jnp.where(reset, a, b), fresh, s.robot)
+        # a user whose recording starts on the carried-over base is in contact from the first step,
+        # without either moving: the schedule put them there (after an episode that Inform's
+        # retries ended before its recording did, the next recording starts where that one ends,
+        # not where its user stood). Held as an ongoing contact, it counts only once they part
+        # and meet again
+        starts = jax.vmap(self.bank.at)(trajs, jnp.zeros_like(s.play))["pose"][:, :2]
+        placed = jnp.any(footprint_distance(robot_lib.pose(robot), starts) < self.cfg.user_radius)
         return s.replace(
             robot=robot,
             k=k,
@@ -391,8 +398,8 @@ class Engine:
             plan_goal=jnp.full(3, jnp.inf),
             method=self.method.init(),
             # a base that stays where it is and stays in contact is one collision, not one per
-            # episode; a new user is a new contact
-            touching=jnp.stack([s.touching[0] & ~reset, jnp.bool_(False)]),
+            # episode
+            touching=jnp.stack([s.touching[0] & ~reset, placed]),
             scan=jnp.where(reset, self._scan(robot_lib.pose(fresh)), s.scan),
             # each episode's noise from its own index: an episode that ran longer or shorter does
             # not re-draw the noise of every one after it
