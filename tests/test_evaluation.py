@@ -11,13 +11,12 @@ import numpy as np
 import pytest
 from scipy import stats as st
 
-from methd_jax import floors, lidar, motion
+from methd_jax import floors, motion
 from methd_jax.control import CONTROL_DT
 from methd_jax.evaluation import engine as E
 from methd_jax.evaluation import methods as M
 from methd_jax.evaluation import metrics, stats
 from methd_jax.evaluation import navigator as nav
-from methd_jax.evaluation import safety_layer as sl
 from methd_jax.geometry import KAIROS, rotate
 from methd_jax.motion.features import MotionBank
 from methd_jax.motion.trajectory import Trajectory, quat_from_yaw_pitch
@@ -583,53 +582,6 @@ def test_escape_point_allows_for_the_base_s_momentum():
     # at rest the drive model is the same whatever zero velocity is passed
     again, _ = E.escape_point(pose, user, walk_at, here, free, grid, cfg, jnp.zeros(2))
     np.testing.assert_allclose(again, rest)
-
-
-def test_escape_point_starts_clear_of_furniture_the_base_touches():
-    # a post 5 mm off the base's left side, by its front corner: ways with a leftward part push
-    # the side into it, which the costmap (blind to the first 0.3 m) allows and the guard refuses
-    post = open_floor(circles=[(0.5, 0.455 + 0.005 + 0.1, 0.1)])
-    grid, cfg = nav.costmap(post), E.EngineConfig()
-    pose, here, still = jnp.zeros(3), jnp.array([True]), jnp.zeros((1, 2))
-    scan = lidar.scan(post, pose, num_rays=720)
-    near = sl.sorted_points(scan)
-    for user in ([1.2, -0.9], [1.4, -0.3], [0.3, -1.3]):
-        u = jnp.array([user])
-        blind, found = E.escape_point(pose, u, still, here, post, grid, cfg)
-        assert bool(found) and float(blind[1]) > 0.0  # the costmap alone: back and to the left
-        goal, found = E.escape_point(pose, u, still, here, post, grid, cfg, None, scan)
-        assert bool(found) and float(goal[1]) < 0.0  # away from the post
-        for way, clear in ((blind, 0.0), (goal, 1.0)):
-            d = np.asarray(way[:2]) / np.linalg.norm(way[:2])
-            command = jnp.array([d[0], d[1], 0.0])
-            swept = float(sl.sweep(command, *near, E.ESCAPE_START, 0.02, cfg.navigator.guard_margin))
-            assert swept == clear
-        # and the footprint, moved along the chosen way in 1 mm steps, stays off the post
-        d = np.asarray(goal[:2]) / np.linalg.norm(goal[:2])
-        for t in np.arange(0.0, E.ESCAPE_START, 0.001):
-            at = jnp.array([t * d[0], t * d[1], 0.0])
-            assert float(E.footprint_distance(at, jnp.array([[0.5, 0.56]]))[0]) > 0.1 - 1e-4
-    # a scan that sees nothing changes nothing
-    u = jnp.array([[1.2, -0.9]])
-    open_ = open_floor()
-    ogrid = nav.costmap(open_)
-    np.testing.assert_array_equal(
-        E.escape_point(pose, u, still, here, open_, ogrid, cfg)[0],
-        E.escape_point(pose, u, still, here, open_, ogrid, cfg, None, jnp.full(720, jnp.inf))[0],
-    )
-
-
-def test_escape_moves_a_base_that_touches_furniture():
-    # a Static base parked with a post 5 mm off its left side; the user walks at it from the
-    # front right. Escape's way must be one the footprint guard lets it drive, or it stands there
-    post = open_floor(circles=[(0.5, 0.455 + 0.005 + 0.1, 0.1)])
-    traj = walk([(4.0, -3.0), (0.8, -0.6)], [1.0], request_at_end=False, hold=2.0)
-    res, rec = run(M.Static(), [traj], post, (0.0, 0.0, 0.0), steps=50 * 6)
-    escaping = np.flatnonzero(rec["mode"] == E.ESCAPE)
-    assert res["escapes"][0] >= 1 and len(escaping) > 0
-    moved = np.linalg.norm(rec["pose"][escaping[-1], :2] - rec["pose"][escaping[0], :2])
-    assert moved > 0.5
-    assert res["collisions_user"][0] == 0 and res["collisions_obstacle"][0] == 0
 
 
 def test_a_user_placed_on_the_base_is_not_a_collision_until_they_meet_again():

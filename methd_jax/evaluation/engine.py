@@ -43,7 +43,6 @@ from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT, CONTROL_HZ
 from methd_jax.distances import CRITICAL_DISTANCE, USER_RADIUS
 from methd_jax.evaluation import navigator as nav
-from methd_jax.evaluation import safety_layer
 from methd_jax.evaluation.methods import Chase, Context
 from methd_jax.floors import Floor
 from methd_jax.geometry import KAIROS, rotate, to_local, wrap_angle
@@ -231,11 +230,6 @@ def mu_schedule(bank: MotionBank, starts: np.ndarray, offset: int, trajectories=
     return Schedule(users=jnp.asarray(pairs, jnp.int32), start=jnp.asarray(start), reset=jnp.ones(k, bool))
 
 
-ESCAPE_START = 0.3
-"""How much of an escape way's start, m, :func:`methd_jax.evaluation.navigator.segment_clear`
-skips and :func:`escape_point` sweeps with the footprint instead."""
-
-
 def escape_point(
     pose: jax.Array,
     users_xy: jax.Array,
@@ -245,7 +239,6 @@ def escape_point(
     grid: nav.Costmap,
     cfg: EngineConfig,
     base_vel: jax.Array | None = None,
-    ranges: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """The first free escape candidate (pose (3,), found) behind the robot, away from the closest user.
 
@@ -256,13 +249,6 @@ def escape_point(
     ``escape_horizon`` while they walk on at ``users_vel`` (U, 2): a point clear of where a user
     stands but across where they walk, or one the base's momentum carries it toward a user on the
     way to, is not an escape.
-
-    Given ``ranges`` (the full-circle scan from the base's centre), the way's first
-    ``ESCAPE_START`` m, which the costmap check leaves out because the base may stand inside the
-    inflation, must also be one the navigator's footprint guard lets the base start on: its sweep
-    with the guard's margin meets no scan point. The costmap alone let a base touching a table
-    pick a way that pushed its side into the table; the guard held it there and the walking user
-    reached it.
     """
     d = jnp.where(present, jnp.linalg.norm(users_xy - pose[:2], axis=1), jnp.inf)
     away = pose[:2] - users_xy[jnp.argmin(d)]
@@ -274,7 +260,7 @@ def escape_point(
     r = r.reshape(-1)
     pts = pose[:2] + r[:, None] * heading
     free = jax.vmap(lambda p: floors.is_free(floor, p, KAIROS.radius))(pts)
-    clear = jax.vmap(lambda p: nav.segment_clear(grid, pose[:2], p, ESCAPE_START))(pts)
+    clear = jax.vmap(lambda p: nav.segment_clear(grid, pose[:2], p))(pts)
     du = jnp.linalg.norm(pts[:, None] - users_xy[None], axis=-1)
     far = jnp.all(jnp.where(present[None], du >= cfg.escape_clearance, True), axis=1)
     # the way (navigator.straight's): the velocity turns linearly from base_vel to the escape
@@ -294,15 +280,6 @@ def escape_point(
     keep = jnp.minimum(cfg.escape_pass, d) - 1e-3  # a base already nearer must not come nearer
     passes = jnp.all(jnp.where(present, gap >= keep, True), axis=(1, 2))
     ok = free & clear & far & passes
-    if ranges is not None:
-        # one sweep per direction (the way keeps the base's yaw, so it is a pure translation)
-        local = jnp.stack([jnp.cos(ang - pose[2]), jnp.sin(ang - pose[2]), jnp.zeros_like(ang)], -1)
-        near = safety_layer.sorted_points(ranges)
-
-        def starts(command):  # 1 m/s for ESCAPE_START s: the first ESCAPE_START metres
-            return safety_layer.sweep(command, *near, ESCAPE_START, CONTROL_DT, ncfg.guard_margin) >= 1.0
-
-        ok &= jnp.repeat(jax.lax.map(starts, local), dist.shape[0])
     best = jnp.argmax(ok)
     return jnp.concatenate([pts[best], pose[2:3]]), jnp.any(ok)
 
@@ -497,9 +474,7 @@ class Engine:
         def look():
             # in Escape the users walk on forward, whatever they did in Inform (stand, walk back)
             ahead = self.bank.vel_world[trajs, jnp.clip(s.play, 0, self.bank.max_steps - 1), :2]
-            return escape_point(
-                pose, users_xy, ahead, present, self.floor, self.grid, cfg, s.robot.qvel[:2], s.scan
-            )
+            return escape_point(pose, users_xy, ahead, present, self.floor, self.grid, cfg, s.robot.qvel[:2])
 
         # 27 candidates' free-space and drive tests, only when needed
         goal_e, found = jax.lax.cond(trigger | retry, look, lambda: (s.escape_goal, jnp.bool_(False)))
