@@ -356,7 +356,7 @@ class Engine:
         # retries ended before its recording did, the next recording starts where that one ends,
         # not where its user stood). Held as an ongoing contact, it counts only once they part
         # and meet again
-        starts = jax.vmap(self.bank.at)(trajs, jnp.zeros_like(s.play))["pose"][:, :2]
+        starts = self.bank.pose[trajs, 0, :2]
         placed = jnp.any(footprint_distance(robot_lib.pose(robot), starts) < self.cfg.user_radius)
         return s.replace(
             robot=robot,
