@@ -42,12 +42,16 @@ def test_actor_critic_uses_the_lidar_and_the_state():
     assert not np.allclose(base, lidar_changed) and not np.allclose(base, state_changed)
 
 
-@pytest.mark.parametrize("stride", [1, 3, 4])
-def test_conv1d_and_its_gradient_match_xla_convolution(stride):
+@pytest.mark.parametrize(
+    ("length", "kernel", "stride"),
+    # the encoder's layers at 90 and 720 rays, a kernel shorter than its stride, unused tail samples
+    [(40, 4, 1), (40, 4, 3), (40, 4, 4), (90, 8, 4), (21, 5, 3), (720, 8, 4), (179, 5, 3), (23, 2, 5)],
+)
+def test_conv1d_and_its_gradient_match_xla_convolution(length, kernel, stride):
     rng = np.random.default_rng(stride)
-    x = jnp.asarray(rng.normal(size=(5, 40, 3)), jnp.float32)
-    w = jnp.asarray(rng.normal(size=(4, 3, 6)), jnp.float32)
-    g = jnp.asarray(rng.normal(size=(5, (40 - 4) // stride + 1, 6)), jnp.float32)
+    x = jnp.asarray(rng.normal(size=(5, length, 3)), jnp.float32)
+    w = jnp.asarray(rng.normal(size=(kernel, 3, 6)), jnp.float32)
+    g = jnp.asarray(rng.normal(size=(5, (length - kernel) // stride + 1, 6)), jnp.float32)
 
     def xla(x, w):
         return jax.lax.conv_general_dilated(x, w, (stride,), "VALID", dimension_numbers=("NWC", "WIO", "NWC"))
