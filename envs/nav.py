@@ -19,6 +19,8 @@ Observation (all in the robot frame; ``observation_layout`` names every slice):
                                    (``NavConfig.users_by_goal``)
 ``goal``                    5      p_g (2, dead zone 5 mm), d_g, theta_g (0 within 0.2 m), dyaw_g
                                    (dead zone 0.00436 rad)
+``clearance`` (optional)    S      the footprint's clearance per sector of the scan
+                                   (``NavConfig.clearance_sectors``, beyond the thesis; 0: absent)
 ==========================  =====  ==================================================================
 
 720 + 25 values for one user, 720 + 33 for two. Angles are wrapped to [-pi, pi).
@@ -158,6 +160,10 @@ class NavConfig:
     trajectories' beginning where they are shorter), so that training dwells on the approach to a
     user who is about to ask rather than on long walks; (0, 0): at the trajectories' beginning (the
     thesis)."""
+    clearance_sectors: int = 0
+    """Above 0: the observation ends with the footprint's clearance in this many equal sectors of
+    the scan (:func:`sector_clearance`), so that the body sees how near each face and corner is
+    without the LiDAR encoder's pooling; must divide ``num_rays`` (the thesis: 0, absent)."""
     contact_limit: int = 1
     """Obstacle contacts that end an episode. Above 1, each contact before the last stops the base
     at rest where it stood before the step (the evaluation stops a base at furniture rather than
@@ -172,7 +178,14 @@ class NavConfig:
     """The stopping rule of :meth:`NavEnv.shield_target` (used by PPO's ``ppo.shield_scale``)."""
 
     def __post_init__(self):
-        for name in ("num_users", "num_rays", "spawn_candidates", "action_latency", "contact_limit"):
+        for name in (
+            "num_users",
+            "num_rays",
+            "spawn_candidates",
+            "action_latency",
+            "contact_limit",
+            "clearance_sectors",
+        ):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise ValueError(f"{name} must be an integer, got {value!r}")
@@ -218,6 +231,11 @@ class NavConfig:
             raise ValueError("num_rays must be >= 8 and spawn_candidates >= 1")
         if self.contact_limit < 1:
             raise ValueError(f"contact_limit must be at least 1, got {self.contact_limit}")
+        if self.clearance_sectors < 0 or (self.clearance_sectors and self.num_rays % self.clearance_sectors):
+            raise ValueError(
+                f"clearance_sectors must be 0 or divide num_rays ({self.num_rays}), "
+                f"got {self.clearance_sectors}"
+            )
         if abs(sum(self.action_weights) - 1.0) > 1e-6:
             raise ValueError(f"action_weights must sum to 1, got {self.action_weights}")
         if not 0.0 <= self.lab_fraction <= 1.0:
@@ -235,16 +253,34 @@ def goal_user_order(user_pose: jax.Array, goal: jax.Array, hip: HipConfig) -> ja
     return jnp.argsort(jnp.linalg.norm(hip_xy - goal[:2], axis=1), stable=True)
 
 
-def observation_layout(num_users: int, num_rays: int = lidar.NUM_RAYS) -> dict[str, slice]:
+def observation_layout(
+    num_users: int, num_rays: int = lidar.NUM_RAYS, clearance_sectors: int = 0
+) -> dict[str, slice]:
     """Name -> slice of the observation vector (see the module docstring)."""
     sizes = [("lidar", num_rays), ("robot_velocity", 3), ("robot_acceleration", 3)]
     sizes += [("previous_action", 3), ("previous_action_2", 3)]
     sizes += [(f"user{i}", 8) for i in range(num_users)] + [("goal", 5)]
+    sizes += [("clearance", clearance_sectors)] if clearance_sectors else []
     out, start = {}, 0
     for name, n in sizes:
         out[name] = slice(start, start + n)
         start += n
     return out
+
+
+CLEARANCE_RANGE = 1.5
+"""The ``clearance`` observation reads clearances beyond this as this, m (the base stops from
+3 m/s in 1.5 m)."""
+
+
+def sector_clearance(ranges: jax.Array, boundary: jax.Array, sectors: int) -> jax.Array:
+    """The footprint's clearance per sector ``(sectors,)``: over each sector's rays the least range
+    beyond the footprint's boundary (``ranges`` and ``boundary`` (R,): b_r per ray), in [0,
+    :data:`CLEARANCE_RANGE`]. Sector j holds the R / sectors rays about the ray at 2 pi j / sectors
+    (sector 0 straight ahead; with an even count per sector, half a ray to its left)."""
+    per = ranges.shape[-1] // sectors
+    beyond = jnp.roll(ranges - boundary, per // 2)
+    return jnp.clip(jnp.min(beyond.reshape(sectors, per), axis=1), 0.0, CLEARANCE_RANGE)
 
 
 def load_bank(source: str, split: str, hip: HipConfig, *, require_split: bool = False) -> MotionBank:
@@ -322,13 +358,13 @@ class NavEnv(Env):
         self._scale = jnp.array([config.robot.max_speed, config.robot.max_speed, config.robot.max_yaw_rate])
         self._cooldown_steps = round(config.cooldown * CONTROL_HZ)
         self._limit_steps = round(config.time_limit * CONTROL_HZ)
-        self._layout = observation_layout(config.num_users, config.num_rays)
+        self._layout = observation_layout(config.num_users, config.num_rays, config.clearance_sectors)
 
     # -- Brax Env interface -------------------------------------------------------------------
 
     @property
     def observation_size(self) -> int:
-        return self._layout["goal"].stop
+        return max(s.stop for s in self._layout.values())
 
     @property
     def action_size(self) -> int:
@@ -637,7 +673,10 @@ class NavEnv(Env):
         dyaw_obs = jnp.where(jnp.abs(dyaw) < cfg.goal_yaw_deadzone, 0.0, dyaw)
         s_g = jnp.stack([p_g_obs[0], p_g_obs[1], d_g, theta_g, dyaw_obs])
 
-        obs = jnp.concatenate([noisy, velocity, accel, action, w.actions[0], s_u.reshape(-1), s_g])
+        parts = [noisy, velocity, accel, action, w.actions[0], s_u.reshape(-1), s_g]
+        if cfg.clearance_sectors:
+            parts.append(sector_clearance(noisy, self._boundary, cfg.clearance_sectors))
+        obs = jnp.concatenate(parts)
         within = (d_g < cfg.safety.goal_distance) & (jnp.abs(dyaw) < cfg.safety.goal_yaw)
         held = jnp.where(within, w.held + CONTROL_DT, 0.0)  # time the r_g tolerance has been held
         terms = rewards.terms(

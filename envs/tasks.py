@@ -150,6 +150,7 @@ _NAV_FIELDS: Fields = {
         ("m", "m", "m/s", "m/s", "rad/s", "rad", "rad", "m"),
     ),
     "goal": (("p_x", "p_y", "d", "theta", "dyaw"), ("m", "m", "m", "rad", "rad")),
+    "clearance": (("clearance",), ("m",)),
 }
 
 _GUIDE_FIELDS: Fields = {

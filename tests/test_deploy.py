@@ -146,6 +146,48 @@ def test_controller_matches_the_jax_policy_in_the_training_env(su_deploy, su_env
     assert controller.ticks >= 20 and not controller.interventions
 
 
+def test_a_policy_that_reads_sector_clearances_deploys_as_it_trained(tmp_path):
+    """``NavConfig.clearance_sectors``: the deployment names the sectors, the controller rebuilds
+    the clearances from the raw scan, and its command is the env's for the JAX policy's action."""
+    cfg = NavConfig(motion="sample", split="all", lab=True, lidar_noise=0.0, lidar_dropout=0.0)
+    env = NavEnv(dataclasses.replace(cfg, num_rays=90, clearance_sectors=18))
+    assert env.observation_layout["clearance"] == slice(115, 133) and env.observation_size == 133
+    export_random_policy(tmp_path, env, "su", networks.ActorCritic(num_rays=90, hidden=(32,)), seed=6)
+    out = export.export_deployment(tmp_path, log=lambda *a: None)
+    manifest = deploy.load_manifest(out)
+    assert manifest["deployment"]["lidar"]["clearance_sectors"] == 18
+    policy = export.load(out)
+    controller = deploy.Controller(out, safety=SafetyConfig(enabled=False))
+    step = jax.jit(env.step)
+    state = jax.jit(env.reset)(jax.random.key(2))
+    # the base in the corridor between the lab's round table and its north wall
+    w = state.pipeline_state.replace(robot=env.robot.init(jnp.array([-3.0, 5.4, 0.3])))
+    state = state.replace(pipeline_state=w, obs=env.observe(w, jnp.zeros(3), jax.random.key(0))[0])
+    seen = []
+    for _ in range(20):
+        w = state.pipeline_state
+        x = _inputs(env, state)
+        action = np.asarray(policy(state.obs))
+        # the clearances of the state's own observation (the rest is held to the env above)
+        obs_np = _numpy_observation(manifest["deployment"], x, w, np.asarray(w.actions[0]), x.goal)
+        np.testing.assert_allclose(obs_np[115:], np.asarray(state.obs)[115:], atol=2e-5)
+        seen.append(np.asarray(state.obs)[115:])
+        expected_cmd = clamp_to_limits(np.asarray(env.command(jnp.asarray(action), w.actions)))
+        out_tick = controller.tick(x)
+        assert out_tick.reason is None
+        np.testing.assert_allclose(out_tick.twist, expected_cmd, atol=1e-5, rtol=0)
+        state = step(state, jnp.asarray(action))
+        if state.done:
+            break
+    seen = np.stack(seen)
+    assert seen.min() < 0.5 and np.ptp(seen, axis=1).max() > 0.1  # furniture near some sectors, not all
+    bad = json.loads((out / "manifest.json").read_text())
+    bad["deployment"]["lidar"]["clearance_sectors"] = 9
+    (out / "manifest.json").write_text(json.dumps(bad))
+    with pytest.raises(deploy.DeployError, match="clearance_sectors 9 disagrees"):
+        deploy.load_manifest(out)
+
+
 def test_observation_and_command_match_the_env_term_by_term(su_env):
     state = jax.jit(su_env.reset)(jax.random.key(9))
     rng = np.random.default_rng(9)

@@ -79,6 +79,29 @@ def test_observation_layout_sizes():
     assert observation_layout(3)["goal"].stop == 720 + 41  # N is a config value, not hard-coded
 
 
+def test_sector_clearance_is_each_sectors_least_range_beyond_the_footprint():
+    """Against a per-sector loop over ray angles (the function rolls and reshapes instead)."""
+    rng = np.random.default_rng(3)
+    for rays, sectors in [(90, 18), (90, 9), (720, 16), (8, 8)]:
+        angles = 2 * np.pi * np.arange(rays) / rays
+        boundary = rng.uniform(0.45, 0.73, rays).astype(np.float32)
+        ranges = (boundary + rng.uniform(-0.1, 2.0, rays)).astype(np.float32)
+        got = np.asarray(envs.nav.sector_clearance(jnp.asarray(ranges), jnp.asarray(boundary), sectors))
+        per, want = rays // sectors, []
+        for j in range(sectors):
+            # the ray at the sector's centre and per // 2 before it, the rest after it
+            offset = (angles - 2 * np.pi * j / sectors + np.pi) % (2 * np.pi) - np.pi
+            steps = np.round(offset / (2 * np.pi / rays)).astype(int)
+            member = (steps >= -(per // 2)) & (steps < per - per // 2)
+            assert member.sum() == per
+            want.append(np.clip(np.min(ranges[member] - boundary[member]), 0.0, envs.nav.CLEARANCE_RANGE))
+        np.testing.assert_allclose(got, want, atol=1e-6)
+    with pytest.raises(ValueError, match="clearance_sectors must be 0 or divide num_rays"):
+        NavConfig(num_rays=90, clearance_sectors=7)
+    assert observation_layout(1, 90, 18)["clearance"] == slice(115, 133)
+    assert "clearance" not in observation_layout(1, 90)
+
+
 _OBSERVERS = {}
 
 

@@ -38,6 +38,7 @@ from flax import traverse_util
 
 import networks
 from envs import tasks
+from envs.nav import CLEARANCE_RANGE
 from methd_jax.cli import OneLineParser
 from methd_jax.control import CONTROL_HZ
 from methd_jax.deploy.policy import params_sha256
@@ -207,6 +208,7 @@ def deployment_section(manifest: dict) -> dict:
             "angle_increment": 2 * math.pi / num_rays,
             "direction": "counter-clockwise from the robot's +x axis",
             "max_range": env["lidar_range"],
+            **_clearance(env),
         },
         "action": {
             "scale": [robot["max_speed"], robot["max_speed"], robot["max_yaw_rate"]],
@@ -225,6 +227,13 @@ def deployment_section(manifest: dict) -> dict:
         "critical_distance": safety["critical_distance"],
         **_user_order(env),
     }
+
+
+def _clearance(env: dict) -> dict:
+    """The footprint's clearance per sector of the scan, at the observation's end
+    (``NavConfig.clearance_sectors``); nothing where the observation has none."""
+    sectors = env.get("clearance_sectors", 0)
+    return {"clearance_sectors": sectors, "clearance_range": CLEARANCE_RANGE} if sectors else {}
 
 
 def _user_order(env: dict) -> dict:

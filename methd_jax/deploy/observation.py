@@ -3,8 +3,9 @@
 Mirrors ``envs.nav.NavEnv.observe`` and ``NavEnv.command`` term by term (tests hold the two
 together): LiDAR clamped to the training range, robot velocity and acceleration, the last two
 policy actions, per user (p_u, v_u, phi_u, theta_u, d_u) in the robot frame (in the order the
-deployment's ``user_order`` names: as given, or the goal's user first), and the goal with its
-dead zones. The deployed robot sees no simulated noise: ranges are only clamped.
+deployment's ``user_order`` names: as given, or the goal's user first), the goal with its dead
+zones and, where the deployment's ``lidar`` names ``clearance_sectors``, the footprint's clearance
+per sector of the scan. The deployed robot sees no simulated noise: ranges are only clamped.
 """
 
 from __future__ import annotations
@@ -32,6 +33,29 @@ def rotate(yaw, vectors: np.ndarray) -> np.ndarray:
     return np.stack(
         [c * vectors[..., 0] - s * vectors[..., 1], s * vectors[..., 0] + c * vectors[..., 1]], -1
     )
+
+
+def boundary_distance(angles: np.ndarray, length: float, width: float) -> np.ndarray:
+    """b_r: distance from the centre of a ``length`` x ``width`` rectangle to its edge along each
+    ray angle (numpy twin of ``methd_jax.geometry.Footprint.boundary_distance``)."""
+    c, s = np.abs(np.cos(angles)), np.abs(np.sin(angles))
+    with np.errstate(divide="ignore"):
+        to_front = np.where(c > 0, 0.5 * length / np.where(c > 0, c, 1.0), np.inf)
+        to_side = np.where(s > 0, 0.5 * width / np.where(s > 0, s, 1.0), np.inf)
+    return np.minimum(to_front, to_side)
+
+
+def sector_clearance(scan: np.ndarray, deployment: dict) -> np.ndarray:
+    """The footprint's clearance per sector of ``scan`` (numpy twin of
+    ``envs.nav.sector_clearance``): over each sector's rays the least range beyond the footprint,
+    in [0, clearance_range]; sector j about the ray at 2 pi j / sectors."""
+    lidar, foot = deployment["lidar"], deployment["footprint"]
+    sectors = lidar["clearance_sectors"]
+    angles = (np.arange(len(scan)) * (2.0 * np.pi / len(scan))).astype(np.float32)
+    beyond = scan - boundary_distance(angles.astype(np.float64), foot["length"], foot["width"])
+    per = len(scan) // sectors
+    beyond = np.roll(beyond, per // 2).reshape(sectors, per)
+    return np.clip(beyond.min(axis=1), 0.0, lidar["clearance_range"])
 
 
 def goal_user_order(users: np.ndarray, goal: np.ndarray, hip: dict) -> np.ndarray:
@@ -86,6 +110,8 @@ def observe(
     s_g = np.array([p_g[0], p_g[1], d_g, theta_g, dyaw])
 
     parts = [scan, velocity, acceleration, actions[0], actions[1], s_u.reshape(-1), s_g]
+    if lidar.get("clearance_sectors", 0):
+        parts.append(sector_clearance(scan, deployment))
     return np.concatenate([np.asarray(p, np.float64).reshape(-1) for p in parts]).astype(np.float32)
 
 

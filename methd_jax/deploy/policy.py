@@ -100,6 +100,16 @@ def _check(manifest: dict, path: Path) -> None:
     rays = d["lidar"]["num_rays"]
     if manifest["network"].get("num_rays") != rays or manifest["observation_layout"]["lidar"] != [0, rays]:
         raise DeployError(f"{file}: lidar.num_rays {rays!r} disagrees with the network's observation")
+    sectors = d["lidar"].get("clearance_sectors", 0)  # folders exported before the field had none
+    field = manifest["observation_layout"].get("clearance")
+    width = field[1] - field[0] if field else 0
+    if not (isinstance(sectors, int) and sectors == width and (not sectors or rays % sectors == 0)):
+        raise DeployError(
+            f"{file}: lidar.clearance_sectors {sectors!r} disagrees with the observation's clearance "
+            f"field ({width} values) or does not divide the {rays} rays"
+        )
+    if sectors and not d["lidar"].get("clearance_range", 0) > 0:
+        raise DeployError(f"{file}: lidar.clearance_range must be positive metres")
     fp = d["footprint"]
     if not np.allclose([fp["length"], fp["width"]], ROBOT_FOOTPRINT, atol=1e-3):
         raise DeployError(
