@@ -243,6 +243,29 @@ def test_init_from_starts_from_the_other_runs_learned_state(small_run, tmp_path,
     stats = jax.device_get(from_policy.obs_stats)
     np.testing.assert_allclose(stats.mean, np.asarray(exported.obs_mean), rtol=1e-6)
     np.testing.assert_allclose(stats.var, np.asarray(exported.obs_std) ** 2, rtol=1e-5)
+    # a field the policy never saw (the footprint's clearance per sector) starts at zero weight and
+    # unscaled, and does not cost the other fields' statistics their weight
+    sectors = apply_overrides(config, ["env.clearance_sectors=18"])
+    setup = run_lib.build(sectors)
+    warm = run_lib._warm_start(jax.jit(setup.trainer.init)(jax.random.key(7)), source / "policy", setup)
+    field = setup.env.observation_layout["clearance"]
+    assert float(warm.obs_stats.count) == exported.manifest["trained"]["transitions"]
+    stats = jax.device_get(warm.obs_stats)
+    assert (
+        np.asarray(stats.mean)[field].tolist() == [0.0] * 18
+        and np.asarray(stats.var)[field].tolist() == [1.0] * 18
+    )
+    np.testing.assert_allclose(
+        np.asarray(stats.mean)[: field.start], np.asarray(exported.obs_mean), rtol=1e-6
+    )
+    obs = np.asarray(warm.env_state.obs)
+    policy = export.Policy(exported.manifest, warm.params, stats.mean, stats.std)
+    without = export.Policy(
+        exported.manifest, exported.params, stats.mean[: field.start], stats.std[: field.start]
+    )
+    for clearance in (0.0, 1.5):
+        seen = jax.numpy.asarray(obs).at[:, field].set(clearance)
+        np.testing.assert_allclose(policy(seen), without(seen[:, : field.start]), atol=1e-6)
     # the same source's exported policy starts a two-user (NavRL) run
     _check_two_user_start_from_su_policy(source)
 

@@ -144,11 +144,12 @@ def _from_policy(state, folder: Path, setup: Setup):
     fields than this run (a single-user policy for two users): the parameters through
     :func:`networks.transfer_inputs` (a new field starts at zero weight), each field's
     normaliser statistics from the same field, or for a new field from its namesake up to the
-    index (``user1`` from ``user0``). Statistics that all come from their own fields keep the
-    weight of the transitions they were estimated on (the manifest's ``trained.transitions``), as
-    a resumed run's do, so that the policy keeps seeing the inputs it was trained on; with any
-    borrowed field they weigh one iteration of data, so that the borrowed ones adapt. The
-    optimiser, value statistics and learning rate stay fresh."""
+    index (``user1`` from ``user0``), or for a field without either at mean 0 and variance 1
+    (its inputs reach the body unscaled). The statistics keep the weight of the transitions they
+    were estimated on (the manifest's ``trained.transitions``), as a resumed run's do, so that the
+    policy keeps seeing the inputs it was trained on; with any borrowed field they weigh one
+    iteration of data, so that the borrowed ones adapt. The optimiser, value statistics and
+    learning rate stay fresh."""
     try:
         policy = export.load(folder)
     except (FileNotFoundError, ValueError) as err:
@@ -175,17 +176,16 @@ def _from_policy(state, folder: Path, setup: Setup):
     except (ValueError, KeyError) as err:
         raise ConfigError(f"init_from={folder}: its parameters do not fit this run ({err})") from None
     mean, var = np.zeros(size, np.float32), np.ones(size, np.float32)
-    own = True
+    borrowed = False
     for name, (a, b) in target.items():
         origin = source.get(name) or source.get(name.rstrip("0123456789") + "0")
-        loaded = origin is not None and origin[1] - origin[0] == b - a
-        if loaded:
+        if origin is not None and origin[1] - origin[0] == b - a:
             mean[a:b] = policy.obs_mean[origin[0] : origin[1]]
             var[a:b] = np.asarray(policy.obs_std[origin[0] : origin[1]]) ** 2
-        own = own and loaded and name in source
+            borrowed = borrowed or name not in source
     iteration = setup.trainer.transitions_per_iteration
     trained = int(policy.manifest.get("trained", {}).get("transitions") or 0)
-    count = max(iteration, trained) if own else iteration
+    count = iteration if borrowed else max(iteration, trained)
     stats = state.obs_stats.replace(mean=mean, var=var, count=np.float32(count))
     # onto the devices (and shardings) of the fresh state's arrays
     place = functools.partial(jax.tree.map, lambda new, old: jax.device_put(new, old.sharding))
