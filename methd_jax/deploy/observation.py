@@ -51,8 +51,8 @@ def sector_clearance(scan: np.ndarray, deployment: dict) -> np.ndarray:
     in [0, clearance_range]; sector j about the ray at 2 pi j / sectors."""
     lidar, foot = deployment["lidar"], deployment["footprint"]
     sectors = lidar["clearance_sectors"]
-    angles = (np.arange(len(scan)) * (2.0 * np.pi / len(scan))).astype(np.float32)
-    beyond = scan - boundary_distance(angles.astype(np.float64), foot["length"], foot["width"])
+    angles = 2.0 * np.pi * np.arange(len(scan)) / len(scan)
+    beyond = scan - boundary_distance(angles, foot["length"], foot["width"])
     per = len(scan) // sectors
     beyond = np.roll(beyond, per // 2).reshape(sectors, per)
     return np.clip(beyond.min(axis=1), 0.0, lidar["clearance_range"])
