@@ -76,7 +76,9 @@ class Policy:
         u_w, guide_actions = self.env.guide_step(ctx.users, state.u_w, state.guide_actions)
         return state.replace(u_w=u_w, guide_actions=guide_actions)
 
-    def chase(self, state: PolicyState, ctx: Context):
+    def observe(self, state: PolicyState, ctx: Context) -> tuple[PolicyState, World, jax.Array]:
+        """(``state`` resumed, the environment's world at this step, the policy's raw observation):
+        the first half of :meth:`chase`."""
         state = self.resume(state, ctx)
         k_goal, k_obs = jax.random.split(ctx.key)
         u = self.env.config.num_users
@@ -101,9 +103,12 @@ class Policy:
             key=ctx.key,
         )
         world = self.env.update_goal(world, ctx.users, k_goal, scripted_step=True)
-
         obs, _, _ = self.env.observe(world, state.actions[0], k_obs, ctx.users)
-        action = jnp.clip(self.policy(obs), -1.0, 1.0)
+        return state, world, obs
+
+    def act(self, state: PolicyState, ctx: Context, world: World, action: jax.Array):
+        """(the next state, the :class:`Chase` order) for ``action`` in [-1, 1]^3 taken in the
+        ``state`` and ``world`` of :meth:`observe`: the second half of :meth:`chase`."""
         command = self.env.command(action, state.actions[:2])
         if self.safety is not None:
             users_xy = ctx.users["pose"][:, :2]
@@ -125,3 +130,7 @@ class Policy:
             step=ctx.step,
         )
         return new, Chase(command, world.goal, jnp.bool_(False))
+
+    def chase(self, state: PolicyState, ctx: Context):
+        state, world, obs = self.observe(state, ctx)
+        return self.act(state, ctx, world, jnp.clip(self.policy(obs), -1.0, 1.0))

@@ -53,7 +53,9 @@ from envs.shield import ShieldConfig, safe_command
 from methd_jax import floors, lidar, motion
 from methd_jax import robot as robot_lib
 from methd_jax.control import CONTROL_DT, CONTROL_HZ
+from methd_jax.deploy.safety import SafetyConfig
 from methd_jax.distances import USER_RADIUS
+from methd_jax.evaluation import safety_layer
 from methd_jax.floors import Floor, FloorConfig
 from methd_jax.geometry import KAIROS, path_around_discs, rotate, to_local, wrap_angle
 from methd_jax.motion.features import HipConfig, MotionBank
@@ -553,6 +555,42 @@ class NavEnv(Env):
         target = jnp.where(changed, jnp.clip(wanted, -1.0, 1.0), action)
         slowed = jnp.any(changed)
         return target, slowed
+
+    def safety_target(
+        self,
+        world: World,
+        action: jax.Array,
+        scan: jax.Array,
+        safety: SafetyConfig,
+        users: dict | None = None,
+        present: jax.Array | None = None,
+    ) -> tuple[jax.Array, jax.Array]:
+        """(the action whose command is ``action``'s after the deployment's safety layer, whether
+        the layer changed it) in ``world``: :func:`methd_jax.evaluation.safety_layer.filter_command`
+        with ``scan`` (a full-circle scan from the base, e.g. the evaluation's dense exact one), the
+        users where they are and as they walk, and the base's velocity, as the evaluation's "DRL +
+        safety" row applies it (``users``: their features as :meth:`MotionBank.at` gives them,
+        default ``world``'s; ``present``: which of them are there, default all). Components the
+        layer leaves alone keep ``action``'s value; the others lie in [-1, 1] (clipped where the
+        blend with the previous actions cannot reach the layer's command in one step)."""
+        command = self.command(action, world.actions)
+        pose = robot_lib.pose(world.robot)
+        users = self._user_features(world) if users is None else users
+        present = jnp.ones(users["pose"].shape[0], bool) if present is None else present
+        safe = safety_layer.filter_command(
+            command,
+            scan,
+            to_local(pose, users["pose"][:, :2]),
+            rotate(-pose[2], users["vel_world"][:, :2]),
+            present,
+            self.config.safety.collision_distance,
+            safety,
+            robot_lib.velocity(world.robot),
+        )
+        wa = self.config.action_weights
+        wanted = (safe / self._scale - wa[1] * world.actions[0] - wa[2] * world.actions[1]) / wa[0]
+        changed = safe != command
+        return jnp.where(changed, jnp.clip(wanted, -1.0, 1.0), action), jnp.any(changed)
 
     def _with_request(self, weighted: dict, terms: dict, firing: jax.Array) -> dict:
         """``weighted`` with ``reward/request`` (the extra r_d at the request step) where it is paid."""
