@@ -125,7 +125,7 @@ def test_bad_options_and_sources_are_one_line_errors(tmp_path, capsys):
 @pytest.mark.slow
 def test_a_small_distillation_exports_a_policy_that_loads(tmp_path):
     config = distill.DistillConfig(
-        rounds=2, steps_per_round=64, num_envs=4, chunk=16, epochs=2, batch_size=32
+        rounds=2, steps_per_round=64, num_envs=4, chunk=16, epochs=2, batch_size=32, engine_steps=300
     )
     lines = []
     out = distill.distill("assets/pretrained/su", tmp_path / "d", config, log=lines.append)
