@@ -97,6 +97,7 @@ def test_the_loss_is_one_sided_at_the_bounds():
 
 
 def test_bad_options_and_sources_are_one_line_errors(tmp_path, capsys):
+    (tmp_path / "file").write_text("kept")
     for argv, message in [
         (
             ["assets/pretrained/su", "--out", str(tmp_path / "o"), "--rounds", "0"],
@@ -109,6 +110,7 @@ def test_bad_options_and_sources_are_one_line_errors(tmp_path, capsys):
         ),
         ([str(tmp_path / "none"), "--out", str(tmp_path / "o")], "holds no exported policy"),
         (["assets/pretrained/guide", "--out", str(tmp_path / "o")], "distillation takes su"),
+        (["assets/pretrained/su", "--out", str(tmp_path / "file")], "is not an empty or earlier deployment"),
         (
             ["assets/pretrained/su", "--init", "assets/pretrained/nav", "--out", str(tmp_path / "o")],
             "takes su",
@@ -119,7 +121,7 @@ def test_bad_options_and_sources_are_one_line_errors(tmp_path, capsys):
         assert exit_.value.code == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and message in err, err
-    assert not (tmp_path / "o").exists()
+    assert not (tmp_path / "o").exists() and (tmp_path / "file").read_text() == "kept"
 
 
 @pytest.mark.slow

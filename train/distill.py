@@ -417,8 +417,10 @@ def main(argv=None) -> int:
         config = DistillConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(DistillConfig)})
     except ValueError as e:
         parser.error(str(e))
-    if args.out.exists() and any(args.out.iterdir()) and not export._replaceable(args.out):
-        parser.error(f"--out {args.out} exists and is not an earlier deployment folder")
+    if args.out.exists() and not (
+        args.out.is_dir() and (not any(args.out.iterdir()) or export._replaceable(args.out))
+    ):
+        parser.error(f"--out {args.out} exists and is not an empty or earlier deployment folder")
     try:
         distiller = Distiller(args.source, config)
         student = start_params(distiller, args.init)
