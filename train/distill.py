@@ -118,19 +118,22 @@ class _Seen:
     target: jax.Array  # the teacher's label there
     changed: jax.Array  # whether the layer changed the teacher's command
     acted: jax.Array  # whether the policy drove at this step (Chase)
+    student: dict  # the student's parameters: data, so that one compiled engine serves every round
 
 
 class _Recorder(Policy):
     """The student in the engine's Chase, keeping what it saw and the teacher's label for it."""
 
-    def __init__(self, distiller: Distiller, student):
+    def __init__(self, distiller: Distiller):
         super().__init__(distiller.env, policy=None, name="student")
         self.distiller = distiller
-        self.student = student
+        self.student = distiller.teacher.params
+        """The parameters a run starts with (:meth:`_RecordingEngine._begin` carries them on)."""
 
     def init(self):
         size = self.env.observation_size
-        return _Seen(super().init(), jnp.zeros(size), jnp.zeros(3), jnp.bool_(False), jnp.bool_(False))
+        false = jnp.bool_(False)
+        return _Seen(super().init(), jnp.zeros(size), jnp.zeros(3), false, false, self.student)
 
     def idle(self, state, ctx):
         return state.replace(policy=super().idle(state.policy, ctx), acted=jnp.bool_(False))
@@ -143,11 +146,16 @@ class _Recorder(Policy):
         target, changed = self.env.safety_target(
             labelled, teacher, ctx.scan, d.safety, ctx.users, ctx.present
         )
-        policy, order = self.act(policy, ctx, world, jnp.clip(d.mean(self.student, obs), -1.0, 1.0))
-        return _Seen(policy, obs, target, changed, jnp.bool_(True)), order
+        policy, order = self.act(policy, ctx, world, jnp.clip(d.mean(state.student, obs), -1.0, 1.0))
+        return _Seen(policy, obs, target, changed, jnp.bool_(True), state.student), order
 
 
 class _RecordingEngine(engine_lib.Engine):
+    def _begin(self, s, schedule, k):
+        # a new episode resets the method's state, but not the student it runs
+        new = super()._begin(s, schedule, k)
+        return new.replace(method=new.method.replace(student=s.method.student))
+
     def _record(self, s, schedule):
         m = s.method
         return {
@@ -180,6 +188,7 @@ class Distiller:
         self._optimizer = optax.adam(config.learning_rate)
         self.collect = jax.jit(self._collect)
         self.fit_step = jax.jit(self._fit_step)
+        self._engine = None  # built on the first engine round, compiled once
 
     def mean(self, params, obs: jax.Array) -> jax.Array:
         """The Gaussian's mean (unclipped) for raw observations ``obs`` (..., O), normalised with
@@ -219,10 +228,13 @@ class Distiller:
         the training trajectories in a sequence shuffled by ``round_``: the Chase steps' records
         and, per step, whether the base was in contact."""
         cfg = self.config
-        floor = floors.lab()
-        engine = _RecordingEngine(_Recorder(self, student), self.env.bank, floor)
+        if self._engine is None:
+            self._engine = _RecordingEngine(_Recorder(self), self.env.bank, floors.lab())
+        engine = self._engine
+        engine.method.student = student
         order = np.random.default_rng([cfg.seed, round_]).permutation(self.env.bank.num_trajectories)
-        schedule = engine_lib.su_schedule(self.env.bank, engine_lib.start_poses(floor, engine.grid), order)
+        starts = engine_lib.start_poses(engine.floor, engine.grid)
+        schedule = engine_lib.su_schedule(self.env.bank, starts, order)
         key = jax.random.fold_in(jax.random.key(cfg.seed), round_)
         rec, _ = engine.trace(schedule, key, cfg.engine_steps)
         acted = rec["acted"]
